@@ -1,0 +1,5 @@
+import sys
+
+from orbslam_hgcn.cli import main
+
+sys.exit(main())
