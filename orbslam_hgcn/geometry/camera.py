@@ -56,8 +56,8 @@ class PinholeCamera:
         # The default 5 iterations leave ~0.03 px error near the corners of strongly
         # distorted lenses (EuRoC); iterate to convergence instead.
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
-        out = cv2.undistortPointsIter(
-            pts.reshape(-1, 1, 2), self.K, self.dist_coeffs, None, self.K, criteria
+        out = cv2.undistortPoints(
+            pts.reshape(-1, 1, 2), self.K, self.dist_coeffs, R=None, P=self.K, criteria=criteria
         )
         return out.reshape(-1, 2)
 
