@@ -1,0 +1,24 @@
+"""Shared test fixtures: paths to the real sample data beside the repository."""
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+TUM_SAMPLE = SHARED_DATA / "tum_fr3_long_office_household_sample"
+EUROC_SAMPLE = SHARED_DATA / "euroc_V1_01_easy_first95"
+
+
+@pytest.fixture
+def tum_sample() -> Path:
+    if not TUM_SAMPLE.is_dir():
+        pytest.skip(f"real TUM sample not found at {TUM_SAMPLE}")
+    return TUM_SAMPLE
+
+
+@pytest.fixture
+def euroc_sample() -> Path:
+    if not EUROC_SAMPLE.is_dir():
+        pytest.skip(f"real EuRoC sample not found at {EUROC_SAMPLE}")
+    return EUROC_SAMPLE
