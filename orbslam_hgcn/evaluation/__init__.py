@@ -1,0 +1,1 @@
+"""Trajectory evaluation: ATE/RPE through evo (``ate``), plots (``plots``), reports (``report``)."""
