@@ -52,8 +52,8 @@ class Trajectory:
         return best
 
 
-def parse_tum_line(text: str, path: str | Path, lineno: int) -> tuple[float, np.ndarray] | None:
-    """Parse one TUM trajectory line into ``(timestamp, T_wc)``; None for comments and blanks."""
+def _parse_tum_values(text: str, path: str | Path, lineno: int) -> np.ndarray | None:
+    """The 8 numbers of one TUM line, or None for comments and blank lines."""
     s = text.strip()
     if not s or s.startswith("#"):
         return None
@@ -67,14 +67,18 @@ def parse_tum_line(text: str, path: str | Path, lineno: int) -> tuple[float, np.
         vals = np.array([float(f) for f in fields], dtype=np.float64)
     except ValueError:
         raise DatasetError(f"{where(path, lineno)}: not a number in {s!r}") from None
-    q = vals[4:8]
-    norm = np.linalg.norm(q)
-    if not np.all(np.isfinite(vals)) or norm < 1e-6:
+    if not np.all(np.isfinite(vals)) or np.linalg.norm(vals[4:8]) < 1e-6:
         raise DatasetError(f"{where(path, lineno)}: non-finite value or zero quaternion")
-    T = np.eye(4)
-    T[:3, :3] = quat_to_R(q / norm)
-    T[:3, 3] = vals[1:4]
-    return float(vals[0]), T
+    return vals
+
+
+def _poses_from_values(vals: np.ndarray) -> np.ndarray:
+    """(N, 8) rows ``t tx ty tz qx qy qz qw`` -> (N, 4, 4) ``T_wc``."""
+    T = np.tile(np.eye(4), (len(vals), 1, 1))
+    q = vals[:, 4:8] / np.linalg.norm(vals[:, 4:8], axis=1, keepdims=True)
+    T[:, :3, :3] = quat_to_R(q)
+    T[:, :3, 3] = vals[:, 1:4]
+    return T
 
 
 def read_tum(path: str | Path) -> Trajectory:
@@ -82,17 +86,18 @@ def read_tum(path: str | Path) -> Trajectory:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: trajectory file not found")
-    stamps, poses = [], []
+    rows = []
     with path.open("r", encoding="utf-8", errors="replace") as fh:
         for lineno, line in enumerate(fh, start=1):
-            parsed = parse_tum_line(line, path, lineno)
-            if parsed is not None:
-                stamps.append(parsed[0])
-                poses.append(parsed[1])
-    if not stamps:
+            vals = _parse_tum_values(line, path, lineno)
+            if vals is not None:
+                rows.append(vals)
+    if not rows:
         raise DatasetError(f"{path}: no poses in trajectory file")
-    order = np.argsort(stamps, kind="stable")
-    return Trajectory(np.asarray(stamps)[order], np.asarray(poses)[order])
+    vals = np.stack(rows)
+    order = np.argsort(vals[:, 0], kind="stable")
+    vals = vals[order]
+    return Trajectory(vals[:, 0], _poses_from_values(vals))
 
 
 def write_tum(path: str | Path, traj: Trajectory) -> None:

@@ -1,0 +1,94 @@
+"""Shipped camera configs load and carry the published calibrations; bad configs are named errors."""
+
+import re
+
+import numpy as np
+import pytest
+
+from orbslam_hgcn.config import CONFIG_DIR, load_camera
+from orbslam_hgcn.errors import ConfigError
+
+# Published values: TUM RGB-D file-formats page (Sturm et al. 2012), EuRoC sensor.yaml
+# (Burri et al. 2016), KITTI odometry calib.txt P0 (Geiger et al. 2012).
+PUBLISHED = {
+    "tum_fr1": (517.3, 516.5, 318.6, 255.3, 640, 480, [0.2624, -0.9531, -0.0054, 0.0026, 1.1633]),
+    "tum_fr2": (520.9, 521.0, 325.1, 249.7, 640, 480, [0.2312, -0.7849, -0.0033, -0.0001, 0.9172]),
+    "tum_fr3": (535.4, 539.2, 320.1, 247.6, 640, 480, [0, 0, 0, 0, 0]),
+    "euroc_cam0": (458.654, 457.296, 367.215, 248.375, 752, 480, [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]),
+    "kitti_00-02": (718.856, 718.856, 607.1928, 185.2157, 1241, 376, [0, 0, 0, 0, 0]),
+    "kitti_03": (721.5377, 721.5377, 609.5593, 172.854, 1242, 375, [0, 0, 0, 0, 0]),
+    "kitti_04-12": (707.0912, 707.0912, 601.8873, 183.1104, 1226, 370, [0, 0, 0, 0, 0]),
+}
+FPS = {"tum": 30.0, "euroc": 20.0, "kitti": 10.0}
+
+GOOD = "name: t\nwidth: 640\nheight: 480\nfps: 30\nfx: 500\nfy: 500\ncx: 320\ncy: 240\ndistortion: [0, 0, 0, 0]\n"
+
+
+def test_every_shipped_config_loads_and_names_its_source():
+    files = sorted(CONFIG_DIR.glob("*.yaml"))
+    assert {f.stem for f in files} >= set(PUBLISHED)
+    for f in files:
+        cam = load_camera(f)
+        assert cam.width > 0 and cam.height > 0
+        assert 0 < cam.cx < cam.width and 0 < cam.cy < cam.height
+        text = f.read_text()
+        assert re.search(r"^# .*(Sturm et al|Burri et al|Geiger et al)", text, re.M), f"{f.name}: no source comment"
+
+
+@pytest.mark.parametrize("name", sorted(PUBLISHED))
+def test_shipped_config_matches_published_calibration(name):
+    cam = load_camera(name)  # by bare name
+    assert cam == load_camera(CONFIG_DIR / f"{name}.yaml")
+    fx, fy, cx, cy, w, h, dist = PUBLISHED[name]
+    assert (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height) == (fx, fy, cx, cy, w, h)
+    np.testing.assert_array_equal(cam.dist_coeffs[: len(dist)], dist)
+    assert cam.fps == FPS[name.split("_")[0]]
+    assert cam.name == name
+
+
+def test_euroc_config_agrees_with_the_sample_sensor_yaml(euroc_sample):
+    from orbslam_hgcn.datasets.euroc import read_sensor_yaml
+
+    cam, _ = read_sensor_yaml(euroc_sample / "mav0" / "cam0" / "sensor.yaml")
+    assert cam == load_camera("euroc_cam0")
+
+
+def test_good_minimal_config_loads(tmp_path):
+    p = tmp_path / "good.yaml"
+    p.write_text(GOOD)
+    cam = load_camera(p)
+    assert (cam.fx, cam.cx, cam.width) == (500.0, 320.0, 640)
+
+
+@pytest.mark.parametrize(
+    "edit, key",
+    [
+        (lambda s: s.replace("fx: 500\n", ""), r"\[fx\]"),
+        (lambda s: s.replace("fx: 500", "fx: 0"), r"\[fx\]"),
+        (lambda s: s.replace("fx: 500", "fx: -500"), r"\[fx\]"),
+        (lambda s: s.replace("fx: 500", "fx: abc"), r"\[fx\]"),
+        (lambda s: s.replace("cx: 320", "cx: 700"), r"\[cx/cy\]"),
+        (lambda s: s.replace("cy: 240", "cy: -1"), r"\[cx/cy\]"),
+        (lambda s: s.replace("distortion: [0, 0, 0, 0]", "distortion: [0, 0, 0]"), r"\[distortion\]"),
+        (lambda s: s.replace("distortion: [0, 0, 0, 0]", "distortion: [0, a, 0, 0]"), r"\[distortion\]"),
+        (lambda s: s.replace("distortion: [0, 0, 0, 0]", "distortion: 0.1"), r"\[distortion\]"),
+        (lambda s: s.replace("width: 640", "width: 640.5"), r"\[width\]"),
+    ],
+)
+def test_bad_config_is_a_config_error_naming_file_and_key(tmp_path, edit, key):
+    p = tmp_path / "cam_bad.yaml"
+    p.write_text(edit(GOOD))
+    with pytest.raises(ConfigError, match=r"cam_bad\.yaml " + key):
+        load_camera(p)
+
+
+def test_invalid_yaml_names_file_and_line(tmp_path):
+    p = tmp_path / "broken.yaml"
+    p.write_text(GOOD + "fy: [1, 2\nname: x\n")
+    with pytest.raises(ConfigError, match=r"broken\.yaml:\d+: not valid YAML"):
+        load_camera(p)
+
+
+def test_missing_config_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match=r"nope\.yaml: config file not found"):
+        load_camera(tmp_path / "nope.yaml")
