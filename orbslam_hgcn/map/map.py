@@ -1,0 +1,391 @@
+"""The Map: keyframes, map points and the links between them, behind one lock.
+
+The Map is the only mutator of links. Adding an observation sets both ends (the point's
+observation dict and the keyframe's feature slot) in one method, and keeps the shared-point
+counts between keyframes (the covisibility weights) exact at every moment, so covisibility
+queries never see stale weights. The policies follow ORB-SLAM (Mur-Artal, Montiel & Tardos,
+T-RO 2015): covisibility edges from 15 shared points, the spanning tree grown from each new
+keyframe's best covisible keyframe and re-linked when a keyframe is culled, points discarded
+when left with two observations or fewer.
+
+Every public method takes :attr:`Map.lock` (a re-entrant lock); hold it yourself to make a
+sequence of calls atomic.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter
+from typing import NamedTuple
+
+import numpy as np
+
+from orbslam_hgcn.config import MapConfig
+from orbslam_hgcn.map.frame import Frame
+from orbslam_hgcn.map.keyframe import KeyFrame
+from orbslam_hgcn.map.mappoint import MapPoint, PointStore, refresh_points
+
+log = logging.getLogger(__name__)
+
+
+class PointArrays(NamedTuple):
+    """Copies of the per-point arrays of a set of ids (all indexed like the ids)."""
+
+    position: np.ndarray  # (M, 3) float64
+    normal: np.ndarray  # (M, 3) float64 unit mean viewing direction
+    min_dist: np.ndarray  # (M,) float64
+    max_dist: np.ndarray  # (M,) float64
+    desc: np.ndarray  # (M, 32) uint8
+    bad: np.ndarray  # (M,) bool
+
+
+class Map:
+    """Keyframes, map points, covisibility graph, spanning tree and loop edges."""
+
+    def __init__(self, config: MapConfig | None = None) -> None:
+        self.config = config or MapConfig()
+        self.lock = threading.RLock()
+        self._kfs: dict[int, KeyFrame] = {}  # every keyframe ever added, bad ones included
+        self._pts = PointStore()
+        self._next_kf_id = 0
+        self.origin_id = -1  # the first keyframe: never culled, root of the spanning tree
+
+    # --- creation ----------------------------------------------------------------------
+    def add_keyframe(self, frame: Frame) -> KeyFrame:
+        """Make a keyframe from a tracked frame (empty point slots) and insert it."""
+        with self.lock:
+            kf = KeyFrame.from_frame(frame, self._next_kf_id)
+            self._next_kf_id += 1
+            self._kfs[kf.id] = kf
+            if self.origin_id < 0:
+                self.origin_id = kf.id
+                kf.first_connection = False
+            return kf
+
+    def add_map_point(self, position: np.ndarray, ref_kf_id: int) -> int:
+        """New point at (3,) ``position`` created by keyframe ``ref_kf_id``; returns its id."""
+        with self.lock:
+            self._good_kf(ref_kf_id)
+            return self._pts.new(position, ref_kf_id)
+
+    # --- observations ------------------------------------------------------------------
+    def add_observation(self, kf_id: int, pid: int, idx: int) -> bool:
+        """Link feature ``idx`` of keyframe ``kf_id`` with point ``pid`` (both ends at once).
+
+        Returns False when exactly this link exists already. Raises ValueError when the slot
+        holds another point or the point is already observed at another slot of the keyframe
+        (erase or replace first).
+        """
+        with self.lock:
+            kf = self._good_kf(kf_id)
+            self._good_point(pid)
+            obs = self._pts.obs[pid]
+            if kf_id in obs:
+                if obs[kf_id] == idx:
+                    return False
+                raise ValueError(f"point {pid} is already observed by keyframe {kf_id} at slot {obs[kf_id]}")
+            cur = int(kf._point_ids[idx])
+            if cur >= 0:
+                raise ValueError(f"slot {idx} of keyframe {kf_id} already holds point {cur}")
+            for other in obs:
+                self._bump_shared(kf, self._kfs[other], +1)
+            obs[kf_id] = int(idx)
+            kf._point_ids[idx] = pid
+            return True
+
+    def add_observations(self, kf_id: int, pids: np.ndarray, idxs: np.ndarray) -> int:
+        """Add many links of one keyframe; existing identical links are skipped. Returns count added."""
+        with self.lock:
+            return sum(self.add_observation(kf_id, int(p), int(i)) for p, i in zip(pids, idxs))
+
+    def erase_observation(self, kf_id: int, pid: int) -> None:
+        """Unlink point ``pid`` from keyframe ``kf_id`` (both ends); a point left with too few
+        observations (MapConfig.min_observations_after_erase) is set bad."""
+        with self.lock:
+            if kf_id not in self._pts.obs[pid]:
+                return
+            self._unlink(kf_id, pid)
+            if len(self._pts.obs[pid]) < self.config.min_observations_after_erase:
+                self.set_bad_point(pid)
+
+    def erase_keyframe_slot(self, kf_id: int, idx: int) -> None:
+        """Unlink whatever point feature ``idx`` of keyframe ``kf_id`` holds."""
+        with self.lock:
+            pid = int(self._kfs[kf_id]._point_ids[idx])
+            if pid >= 0:
+                self.erase_observation(kf_id, pid)
+
+    def _unlink(self, kf_id: int, pid: int) -> None:
+        obs = self._pts.obs[pid]
+        idx = obs.pop(kf_id)
+        kf = self._kfs[kf_id]
+        kf._point_ids[idx] = -1
+        for other in obs:
+            self._bump_shared(kf, self._kfs[other], -1)
+        if self._pts.ref_kf[pid] == kf_id:
+            self._pts.ref_kf[pid] = next(iter(obs)) if obs else -1
+
+    @staticmethod
+    def _bump_shared(a: KeyFrame, b: KeyFrame, delta: int) -> None:
+        for x, y in ((a, b), (b, a)):
+            n = x.shared.get(y.id, 0) + delta
+            if n > 0:
+                x.shared[y.id] = n
+            else:
+                x.shared.pop(y.id, None)
+            x._invalidate_covisibility()
+
+    # --- points ------------------------------------------------------------------------
+    def set_bad_point(self, pid: int) -> None:
+        """Discard a point: unlink every observation and flag it bad."""
+        with self.lock:
+            self._pts.bad[pid] = True
+            for kf_id in list(self._pts.obs[pid]):
+                self._unlink(kf_id, pid)
+
+    def replace_point(self, old: int, new: int) -> None:
+        """Fuse ``old`` into ``new``: move old's observations to new (dropping those in
+        keyframes that already see new), add its counters, flag old bad and replaced by new
+        (ORB-SLAM MapPoint::Replace); new's descriptor and viewing range are recomputed."""
+        with self.lock:
+            if old == new:
+                return
+            self._good_point(new)
+            s = self._pts
+            moved = list(s.obs[old].items())
+            for kf_id, _ in moved:
+                self._unlink(kf_id, old)
+            for kf_id, idx in moved:
+                if kf_id not in s.obs[new]:
+                    self.add_observation(kf_id, new, idx)
+            s.found[new] += s.found[old]
+            s.visible[new] += s.visible[old]
+            s.bad[old] = True
+            s.replaced_by[old] = new
+            self.update_points(np.array([new]))
+
+    def set_point_positions(self, pids: np.ndarray, positions: np.ndarray) -> None:
+        """Write (M, 3) positions of points ``pids``."""
+        with self.lock:
+            self._pts.position[np.asarray(pids, dtype=np.int64)] = np.asarray(positions, dtype=np.float64)
+
+    def update_points(self, pids: np.ndarray, descriptors: bool = True) -> None:
+        """Recompute mean viewing direction and distance range (ORB-SLAM
+        UpdateNormalAndDepth) and, with ``descriptors``, the representative descriptor
+        (ComputeDistinctiveDescriptors) of each good point in ``pids``."""
+        with self.lock:
+            refresh_points(self._pts, self._kfs, pids, descriptors)
+
+    def increase_visible(self, pids: np.ndarray, n: int = 1) -> None:
+        with self.lock:
+            np.add.at(self._pts.visible, np.asarray(pids, dtype=np.int64), n)
+
+    def increase_found(self, pids: np.ndarray, n: int = 1) -> None:
+        with self.lock:
+            np.add.at(self._pts.found, np.asarray(pids, dtype=np.int64), n)
+
+    def point(self, pid: int) -> MapPoint:
+        return MapPoint(self._pts, int(pid))
+
+    def point_ids(self) -> np.ndarray:
+        """(P,) int64 ids of all good points."""
+        with self.lock:
+            return np.flatnonzero(~self._pts.bad[: self._pts.n]).astype(np.int64)
+
+    def n_points(self) -> int:
+        with self.lock:
+            return int(np.count_nonzero(~self._pts.bad[: self._pts.n]))
+
+    def positions(self, pids: np.ndarray) -> np.ndarray:
+        """(M, 3) float64 copy of the positions of ``pids``."""
+        with self.lock:
+            return self._pts.position[np.asarray(pids, dtype=np.int64)]
+
+    def descriptors(self, pids: np.ndarray) -> np.ndarray:
+        """(M, 32) uint8 copy of the representative descriptors of ``pids``."""
+        with self.lock:
+            return self._pts.desc[np.asarray(pids, dtype=np.int64)]
+
+    def point_arrays(self, pids: np.ndarray) -> PointArrays:
+        """Every per-point array for ``pids`` in one locked gather."""
+        with self.lock:
+            s, ids = self._pts, np.asarray(pids, dtype=np.int64)
+            return PointArrays(s.position[ids], s.normal[ids], s.min_dist[ids], s.max_dist[ids], s.desc[ids], s.bad[ids])
+
+    def n_observations(self, pids: np.ndarray) -> np.ndarray:
+        """(M,) int64 number of keyframes observing each point."""
+        with self.lock:
+            return np.array([len(self._pts.obs[p]) for p in np.asarray(pids, dtype=np.int64)], dtype=np.int64)
+
+    # --- keyframes ---------------------------------------------------------------------
+    def keyframe(self, kf_id: int) -> KeyFrame:
+        """The keyframe with this id (bad ones included)."""
+        return self._kfs[kf_id]
+
+    def keyframes(self) -> list[KeyFrame]:
+        """All good keyframes in id order."""
+        with self.lock:
+            return [kf for kf in self._kfs.values() if not kf.bad]
+
+    def keyframe_ids(self) -> np.ndarray:
+        with self.lock:
+            return np.array([kf.id for kf in self._kfs.values() if not kf.bad], dtype=np.int64)
+
+    def n_keyframes(self) -> int:
+        with self.lock:
+            return sum(not kf.bad for kf in self._kfs.values())
+
+    def set_keyframe_pose(self, kf_id: int, T_cw: np.ndarray) -> None:
+        with self.lock:
+            self._kfs[kf_id]._set_pose(T_cw)
+
+    def set_keyframe_poses(self, kf_ids: np.ndarray, T_cw: np.ndarray) -> None:
+        """Write (K, 4, 4) poses of keyframes ``kf_ids``."""
+        with self.lock:
+            for k, T in zip(np.asarray(kf_ids).reshape(-1), T_cw):
+                self._kfs[int(k)]._set_pose(T)
+
+    def tracked_points(self, kf_id: int, min_obs: int = 1) -> int:
+        """Points of the keyframe observed by at least ``min_obs`` keyframes (ORB-SLAM
+        TrackedMapPoints, used by the keyframe decision)."""
+        with self.lock:
+            _, pids = self._kfs[kf_id].observed_points()
+            return int(np.count_nonzero(self.n_observations(pids) >= min_obs))
+
+    # --- covisibility and spanning tree ------------------------------------------------
+    def covisible_keyframes(self, kf_id: int, n: int | None = None) -> np.ndarray:
+        """(C,) int64 covisibility neighbours of ``kf_id`` by descending weight (the best n)."""
+        with self.lock:
+            ids, _ = self._kfs[kf_id].covisible(self.config.covisibility_min_weight)
+            return ids[:n].copy() if n is not None else ids.copy()
+
+    def covisible_by_weight(self, kf_id: int, min_weight: int) -> np.ndarray:
+        """(C,) int64 keyframes sharing at least ``min_weight`` points, by descending weight."""
+        with self.lock:
+            ids, w = self._kfs[kf_id].covisible(self.config.covisibility_min_weight)
+            if min_weight >= self.config.covisibility_min_weight:
+                return ids[w >= min_weight].copy()
+            shared = self._kfs[kf_id].shared
+            cand = sorted((k for k, c in shared.items() if c >= min_weight), key=lambda k: (-shared[k], k))
+            return np.array(cand, dtype=np.int64)
+
+    def covisibility_weight(self, a: int, b: int) -> int:
+        """Number of map points keyframes ``a`` and ``b`` both observe."""
+        with self.lock:
+            return self._kfs[a].shared.get(b, 0)
+
+    def update_connections(self, kf_id: int) -> None:
+        """Recount the keyframe's shared points from its slots (fixing both directions if
+        they disagree) and, on its first connection, hang it in the spanning tree under its
+        best covisible keyframe (ORB-SLAM KeyFrame::UpdateConnections)."""
+        with self.lock:
+            kf = self._good_kf(kf_id)
+            counts: Counter[int] = Counter()
+            for pid in kf._point_ids[kf._point_ids >= 0]:
+                counts.update(k for k in self._pts.obs[pid] if k != kf_id)
+            if counts != Counter(kf.shared):
+                log.warning("keyframe %d: shared counts out of date; recounted", kf_id)
+                for other in set(counts) | set(kf.shared):
+                    delta = counts.get(other, 0) - kf.shared.get(other, 0)
+                    if delta:
+                        self._bump_shared(kf, self._kfs[other], delta)
+            if kf.first_connection and kf.id != self.origin_id:
+                # The best covisible keyframe already in the tree (in ORB-SLAM's order of
+                # events every neighbour is older, hence in the tree; this also holds when
+                # keyframes are linked in another order, and never closes a cycle).
+                ids, _ = kf.covisible(self.config.covisibility_min_weight)
+                ranked = list(ids) + sorted(kf.shared, key=lambda k: (-kf.shared[k], k))
+                for k in ranked:
+                    other = self._kfs[int(k)]
+                    if other.id == self.origin_id or not other.first_connection:
+                        self.change_parent(kf_id, other.id)
+                        kf.first_connection = False
+                        break
+
+    def change_parent(self, kf_id: int, parent_id: int) -> None:
+        with self.lock:
+            kf = self._kfs[kf_id]
+            if kf.parent >= 0:
+                self._kfs[kf.parent].children.discard(kf_id)
+            kf.parent = int(parent_id)
+            self._kfs[parent_id].children.add(kf_id)
+
+    def add_loop_edge(self, a: int, b: int) -> None:
+        """Record a loop closure between keyframes ``a`` and ``b`` (both ends); such keyframes
+        are protected from culling."""
+        with self.lock:
+            ka, kb = self._good_kf(a), self._good_kf(b)
+            ka.loop_edges.add(b)
+            kb.loop_edges.add(a)
+            ka.not_erase = kb.not_erase = True
+
+    def set_not_erase(self, kf_id: int) -> None:
+        """Protect a keyframe from culling while the loop closer uses it."""
+        with self.lock:
+            self._kfs[kf_id].not_erase = True
+
+    def set_erase(self, kf_id: int) -> None:
+        """Lift the protection (kept while the keyframe has loop edges); a cull requested
+        meanwhile happens now (ORB-SLAM KeyFrame::SetErase)."""
+        with self.lock:
+            kf = self._kfs[kf_id]
+            if not kf.loop_edges:
+                kf.not_erase = False
+            if kf.to_be_erased and not kf.not_erase:
+                self.set_bad_keyframe(kf_id)
+
+    def set_bad_keyframe(self, kf_id: int) -> bool:
+        """Cull a keyframe (ORB-SLAM KeyFrame::SetBadFlag): unlink its observations, then give
+        each child a new parent among {old parent, re-linked siblings} with the strongest
+        covisibility, the rest to the old parent. Returns False when the keyframe is the
+        origin or protected (then it is culled when the protection is lifted)."""
+        with self.lock:
+            kf = self._kfs[kf_id]
+            if kf.bad or kf_id == self.origin_id:
+                return False
+            if kf.not_erase:
+                kf.to_be_erased = True
+                return False
+            for pid in kf._point_ids[kf._point_ids >= 0].tolist():
+                self.erase_observation(kf_id, pid)
+            candidates = {kf.parent} if kf.parent >= 0 else set()
+            children = {c for c in kf.children if not self._kfs[c].bad}
+            min_w = self.config.covisibility_min_weight
+            while children and candidates:
+                best, best_w = None, -1
+                for c in sorted(children):
+                    for n, w in zip(*self._kfs[c].covisible(min_w)):
+                        if int(n) in candidates and w > best_w:
+                            best, best_w = (c, int(n)), int(w)
+                if best is None:
+                    break
+                self.change_parent(*best)
+                candidates.add(best[0])
+                children.discard(best[0])
+            for c in children:
+                if kf.parent >= 0:
+                    self.change_parent(c, kf.parent)
+                else:
+                    log.warning("culled keyframe %d had no parent; child %d left as a root", kf_id, c)
+                    self._kfs[c].parent = -1
+            kf.children.clear()
+            if kf.parent >= 0:
+                self._kfs[kf.parent].children.discard(kf_id)
+                kf.T_cp = kf.T_cw @ self._kfs[kf.parent].T_wc
+            for other in kf.loop_edges:
+                self._kfs[other].loop_edges.discard(kf_id)
+            kf.loop_edges.clear()
+            kf.bad = True
+            return True
+
+    # --- helpers -----------------------------------------------------------------------
+    def _good_kf(self, kf_id: int) -> KeyFrame:
+        kf = self._kfs.get(kf_id)
+        if kf is None or kf.bad:
+            raise ValueError(f"keyframe {kf_id} does not exist or is bad")
+        return kf
+
+    def _good_point(self, pid: int) -> None:
+        if not 0 <= pid < self._pts.n or self._pts.bad[pid]:
+            raise ValueError(f"map point {pid} does not exist or is bad")

@@ -1,0 +1,265 @@
+"""Map points: a struct-of-arrays store indexed by point id, a read-only view per point,
+and the ORB-SLAM point descriptors (Mur-Artal, Montiel & Tardos, T-RO 2015, Sec. III-C):
+representative descriptor, mean viewing direction, scale-invariance distance range.
+
+Arrays (positions, normals, distance ranges, descriptors, counters, flags) are indexed by
+point id, so the tracker can gather any set of points with one fancy index. Observations
+are kept per point as ``{kf_id: feature index}`` in insertion order.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+# Number of set bits of every byte value, for Hamming distances of packed descriptors.
+_POPCOUNT8 = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
+
+
+def hamming_matrix(desc: np.ndarray) -> np.ndarray:
+    """(n, n) int32 pairwise Hamming distances of (n, 32) uint8 descriptors."""
+    desc = np.asarray(desc, dtype=np.uint8)
+    x = desc[:, None, :] ^ desc[None, :, :]
+    return _POPCOUNT8[x].sum(axis=2, dtype=np.int32)
+
+
+def distinctive_descriptor(desc: np.ndarray) -> np.ndarray:
+    """The descriptor with the least median Hamming distance to the others.
+
+    desc: (n, 32) uint8 descriptors of all observations of one point (n >= 1).
+    Returns (32,) uint8 (ORB-SLAM MapPoint::ComputeDistinctiveDescriptors: the median of a
+    row sorted ascending, self-distance included, taken at index (n - 1) // 2).
+    """
+    desc = np.asarray(desc, dtype=np.uint8)
+    if len(desc) <= 2:
+        return desc[0].copy()
+    D = np.sort(hamming_matrix(desc), axis=1)
+    median = D[:, (len(desc) - 1) // 2]
+    return desc[int(np.argmin(median))].copy()
+
+
+def normal_and_depth(
+    position: np.ndarray,
+    centers: np.ndarray,
+    ref_center: np.ndarray,
+    ref_octave: int,
+    scale_factors: np.ndarray,
+) -> tuple[np.ndarray, float, float]:
+    """Mean viewing direction and scale-invariance distance range of one point.
+
+    position: (3,) point in the world; centers: (n, 3) centres of the observing keyframes;
+    ref_center: (3,) centre of the reference keyframe, ref_octave the pyramid level of the
+    point's keypoint there; scale_factors: (L,) level scales.
+    Returns ((3,) unit mean viewing direction (point minus centre), min_dist, max_dist), as
+    ORB-SLAM UpdateNormalAndDepth: max = dist * scale[level], min = max / scale[L - 1]. The
+    mean direction is normalised to unit length here, so cosine tests against it are exact.
+    """
+    dirs = position[None, :] - np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+    normal = dirs.mean(axis=0)
+    normal /= max(float(np.linalg.norm(normal)), 1e-12)
+    dist = float(np.linalg.norm(position - ref_center))
+    max_dist = dist * float(scale_factors[ref_octave])
+    min_dist = max_dist / float(scale_factors[-1])
+    return normal, min_dist, max_dist
+
+
+def predict_scale(dist: np.ndarray, max_dist: np.ndarray, scale_factors: np.ndarray) -> np.ndarray:
+    """Pyramid level at which points should be seen from distance ``dist``.
+
+    dist, max_dist: (M,) float distances from the camera and each point's max distance;
+    scale_factors: (L,) level scales of the observing frame.
+    Returns (M,) int64 level in [0, L - 1] (ORB-SLAM MapPoint::PredictScale:
+    ceil(log(max_dist / dist) / log(scale_factor))).
+    """
+    dist = np.asarray(dist, dtype=np.float64)
+    max_dist = np.asarray(max_dist, dtype=np.float64)
+    scale_factors = np.asarray(scale_factors, dtype=np.float64)
+    n_levels = len(scale_factors)
+    log_sf = np.log(scale_factors[1]) if n_levels > 1 else 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        level = np.ceil(np.log(max_dist / dist) / log_sf)
+    level = np.nan_to_num(level, nan=0.0, posinf=n_levels - 1, neginf=0.0)
+    return np.clip(level, 0, n_levels - 1).astype(np.int64)
+
+
+def refresh_points(store: PointStore, kfs: dict, pids: np.ndarray, descriptors: bool = True) -> None:
+    """Recompute normal, distance range and (with ``descriptors``) representative descriptor
+    of the good points ``pids`` of ``store`` from their observations in ``kfs`` ({id:
+    KeyFrame}); the vectorised form of :func:`normal_and_depth` and
+    :func:`distinctive_descriptor` (the Map calls this under its lock)."""
+    s = store
+    ids = np.asarray(pids, dtype=np.int64).reshape(-1)
+    ids = ids[~s.bad[ids]]
+    ids = ids[[bool(s.obs[p]) for p in ids]] if len(ids) else ids
+    if len(ids) == 0:
+        return
+    rows, kf_of, feat_of = [], [], []
+    for r, pid in enumerate(ids):
+        obs = s.obs[pid]
+        rows.extend([r] * len(obs))
+        kf_of.extend(obs.keys())
+        feat_of.extend(obs.values())
+    rows_a = np.array(rows)
+    centers = {k: kfs[k].T_wc[:3, 3] for k in set(kf_of)}
+    dirs = s.position[ids][rows_a] - np.array([centers[k] for k in kf_of])
+    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+    normal = np.zeros((len(ids), 3))
+    np.add.at(normal, rows_a, dirs)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    refs = [kfs[int(k)] for k in s.ref_kf[ids]]
+    ref_c = np.array([kf.T_wc[:3, 3] for kf in refs])
+    level_scale = np.array(
+        [kf.keypoints.scale_factors[kf.keypoints.octave[s.obs[p][kf.id]]] for p, kf in zip(ids, refs)]
+    )
+    top_scale = np.array([kf.keypoints.scale_factors[-1] for kf in refs])
+    dmax = np.linalg.norm(s.position[ids] - ref_c, axis=1) * level_scale
+    s.normal[ids], s.max_dist[ids], s.min_dist[ids] = normal, dmax, dmax / top_scale
+    if descriptors:
+        bounds = np.flatnonzero(np.diff(rows_a)) + 1
+        all_desc = np.stack([kfs[k].keypoints.desc[f] for k, f in zip(kf_of, feat_of)])
+        for pid, block in zip(ids, np.split(all_desc, bounds)):
+            s.desc[pid] = distinctive_descriptor(block)
+
+
+class PointStore:
+    """Struct of arrays, one row per point id (ids are never reused).
+
+    position (P, 3) float64, normal (P, 3) float64 unit mean viewing direction,
+    min_dist/max_dist (P,) float64, desc (P, 32) uint8 representative descriptor,
+    found/visible (P,) int64 counters, first_kf/ref_kf (P,) int64, bad (P,) bool,
+    replaced_by (P,) int64 (-1: not replaced); obs: list of {kf_id: feature index}.
+    """
+
+    def __init__(self, capacity: int = 1024) -> None:
+        self.n = 0
+        self._alloc(capacity)
+        self.obs: list[dict[int, int]] = []
+
+    def _alloc(self, cap: int) -> None:
+        def grow(name: str, shape: tuple, dtype, fill) -> None:
+            new = np.full((cap, *shape), fill, dtype=dtype)
+            old = getattr(self, name, None)
+            if old is not None:
+                new[: self.n] = old[: self.n]
+            setattr(self, name, new)
+
+        grow("position", (3,), np.float64, 0.0)
+        grow("normal", (3,), np.float64, 0.0)
+        grow("min_dist", (), np.float64, 0.0)
+        grow("max_dist", (), np.float64, np.inf)
+        grow("desc", (32,), np.uint8, 0)
+        grow("found", (), np.int64, 1)
+        grow("visible", (), np.int64, 1)
+        grow("first_kf", (), np.int64, -1)
+        grow("ref_kf", (), np.int64, -1)
+        grow("bad", (), bool, False)
+        grow("replaced_by", (), np.int64, -1)
+        self.capacity = cap
+
+    def new(self, position: np.ndarray, first_kf: int) -> int:
+        if self.n == self.capacity:
+            self._alloc(2 * self.capacity)
+        pid = self.n
+        self.n += 1
+        self.position[pid] = np.asarray(position, dtype=np.float64).reshape(3)
+        self.first_kf[pid] = first_kf
+        self.ref_kf[pid] = first_kf
+        self.obs.append({})
+        return pid
+
+    def valid(self, ids: np.ndarray) -> np.ndarray:
+        """(M,) bool: ids that exist in the store."""
+        ids = np.asarray(ids, dtype=np.int64)
+        return (ids >= 0) & (ids < self.n)
+
+
+def _ro(a: np.ndarray) -> np.ndarray:
+    v = a.view()
+    v.flags.writeable = False
+    return v
+
+
+class MapPoint:
+    """Read-only view of one point of a :class:`PointStore` (changes go through the Map)."""
+
+    __slots__ = ("_s", "id")
+
+    def __init__(self, store: PointStore, pid: int) -> None:
+        if not 0 <= pid < store.n:
+            raise KeyError(f"no map point with id {pid}")
+        self._s = store
+        self.id = int(pid)
+
+    def __repr__(self) -> str:
+        return f"MapPoint(id={self.id}, obs={self.n_obs}, bad={self.bad})"
+
+    @property
+    def position(self) -> np.ndarray:
+        """(3,) world position."""
+        return _ro(self._s.position[self.id])
+
+    @property
+    def normal(self) -> np.ndarray:
+        """(3,) unit mean viewing direction (from the cameras towards the point)."""
+        return _ro(self._s.normal[self.id])
+
+    @property
+    def descriptor(self) -> np.ndarray:
+        """(32,) uint8 representative descriptor."""
+        return _ro(self._s.desc[self.id])
+
+    @property
+    def min_dist(self) -> float:
+        """Nearest distance at which the point is scale-invariantly observable."""
+        return float(self._s.min_dist[self.id])
+
+    @property
+    def max_dist(self) -> float:
+        return float(self._s.max_dist[self.id])
+
+    @property
+    def observations(self) -> dict[int, int]:
+        """Copy of {kf_id: feature index} in insertion order."""
+        return dict(self._s.obs[self.id])
+
+    @property
+    def n_obs(self) -> int:
+        return len(self._s.obs[self.id])
+
+    @property
+    def found(self) -> int:
+        return int(self._s.found[self.id])
+
+    @property
+    def visible(self) -> int:
+        return int(self._s.visible[self.id])
+
+    @property
+    def found_ratio(self) -> float:
+        """found / visible (ORB-SLAM GetFoundRatio, used to cull points)."""
+        return self.found / max(self.visible, 1)
+
+    @property
+    def first_kf(self) -> int:
+        return int(self._s.first_kf[self.id])
+
+    @property
+    def ref_kf(self) -> int:
+        return int(self._s.ref_kf[self.id])
+
+    @property
+    def bad(self) -> bool:
+        return bool(self._s.bad[self.id])
+
+    @property
+    def replaced_by(self) -> int:
+        """Id of the point that absorbed this one in a fuse, -1 if none."""
+        return int(self._s.replaced_by[self.id])
+
+    def predict_scale(self, dist: float, scale_factors: np.ndarray) -> int:
+        """Pyramid level expected at distance ``dist`` (see :func:`predict_scale`)."""
+        return int(predict_scale(np.array([dist]), np.array([self.max_dist]), scale_factors)[0])

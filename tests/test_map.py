@@ -1,0 +1,305 @@
+"""Map model: links kept at both ends, covisibility weights, fuse, culling, tree, invariants."""
+
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from orbslam_hgcn.config import MapConfig
+from orbslam_hgcn.features.keypoints import KeypointSet
+from orbslam_hgcn.geometry.camera import PinholeCamera
+from orbslam_hgcn.geometry.se3 import make_T
+from orbslam_hgcn.map import Frame, Map, MapSnapshot, check_invariants, essential_graph, predict_scale, snapshot
+from orbslam_hgcn.map.graph import COVISIBILITY, LOOP, TREE
+from orbslam_hgcn.map.mappoint import distinctive_descriptor, hamming_matrix, normal_and_depth
+from orbslam_hgcn.map.window import apply_window, local_window
+
+CAM = PinholeCamera(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
+SCALES = 1.2 ** np.arange(8)
+N_FEAT = 300
+
+
+def _keypoints(rng, n=N_FEAT):
+    uv = rng.uniform([0, 0], [640, 480], size=(n, 2))
+    return KeypointSet(
+        uv_raw=uv.astype(np.float32),
+        uv=uv,
+        octave=rng.integers(0, 8, n).astype(np.int32),
+        angle=np.zeros(n, np.float32),
+        response=np.ones(n, np.float32),
+        desc=rng.integers(0, 256, (n, 32)).astype(np.uint8),
+        scale_factors=SCALES,
+    )
+
+
+def _frame(i, rng):
+    return Frame(id=i, timestamp=0.1 * i, camera=CAM, keypoints=_keypoints(rng), T_cw=make_T(np.eye(3), [-0.2 * i, 0, 0]))
+
+
+def _build(rng, n_kf=6, n_pts=400, span=(2, 4)):
+    """A map whose points are each seen by a run of consecutive keyframes; returns (map,
+    {pid: {kf: idx}}) with the intended observations."""
+    m = Map()
+    kfs = [m.add_keyframe(_frame(i, rng)) for i in range(n_kf)]
+    next_slot = [0] * n_kf
+    truth = {}
+    for _ in range(n_pts):
+        length = int(rng.integers(span[0], span[1] + 1))
+        start = int(rng.integers(0, n_kf - length + 1))
+        seen = [k for k in range(start, start + length) if next_slot[k] < N_FEAT]
+        if len(seen) < 2:
+            continue
+        pid = m.add_map_point(rng.normal(size=3) + [0, 0, 5], seen[0])
+        truth[pid] = {}
+        for k in seen:
+            m.add_observation(kfs[k].id, pid, next_slot[k])
+            truth[pid][k] = next_slot[k]
+            next_slot[k] += 1
+    for kf in kfs:
+        m.update_connections(kf.id)
+    return m, truth
+
+
+def _shared_counts(truth):
+    c = Counter()
+    for obs in truth.values():
+        for a in obs:
+            for b in obs:
+                if a != b:
+                    c[(a, b)] += 1
+    return c
+
+
+def test_observations_linked_at_both_ends_and_weights_equal_shared_counts():
+    rng = np.random.default_rng(0)
+    m, truth = _build(rng)
+    assert check_invariants(m) == []
+    for pid, obs in truth.items():
+        assert m.point(pid).observations == obs
+        for k, idx in obs.items():
+            assert m.keyframe(k).point_ids[idx] == pid
+    counts = _shared_counts(truth)
+    for (a, b), c in counts.items():
+        assert m.covisibility_weight(a, b) == c
+    # Ordered neighbours: weights >= 15, descending.
+    ids = m.covisible_keyframes(2)
+    w = [m.covisibility_weight(2, int(k)) for k in ids]
+    assert w == sorted(w, reverse=True) and min(w) >= 15
+    assert set(ids) == {b for (a, b), c in counts.items() if a == 2 and c >= 15}
+
+
+def test_erase_observation_unlinks_both_ends_and_drops_weak_points():
+    rng = np.random.default_rng(1)
+    m, truth = _build(rng, span=(3, 4))
+    pid = next(p for p, o in truth.items() if len(o) == 4)
+    kf_a, kf_b = list(truth[pid])[:2]
+    w_before = m.covisibility_weight(kf_a, kf_b)
+    m.erase_observation(kf_a, pid)
+    assert kf_a not in m.point(pid).observations and pid not in m.keyframe(kf_a).point_ids
+    assert m.covisibility_weight(kf_a, kf_b) == w_before - 1
+    assert not m.point(pid).bad and check_invariants(m) == []
+    # The threshold is configurable: with 1, a point survives on a single observation.
+    lenient = Map(MapConfig(min_observations_after_erase=1))
+    a, b = lenient.add_keyframe(_frame(0, rng)), lenient.add_keyframe(_frame(1, rng))
+    q = lenient.add_map_point([0, 0, 5], a.id)
+    lenient.add_observation(a.id, q, 0)
+    lenient.add_observation(b.id, q, 0)
+    lenient.erase_observation(b.id, q)
+    assert not lenient.point(q).bad and lenient.point(q).observations == {a.id: 0}
+    # Left with 2 observations after the next erase: discarded as in ORB-SLAM (nObs <= 2).
+    m.erase_observation(kf_b, pid)
+    assert m.point(pid).bad and m.point(pid).n_obs == 0
+    assert not np.isin(pid, np.concatenate([m.keyframe(k).point_ids for k in truth[pid]]))
+    assert check_invariants(m) == []
+
+
+def test_add_observation_refuses_conflicting_links():
+    rng = np.random.default_rng(2)
+    m, truth = _build(rng)
+    pid, obs = next(iter(truth.items()))
+    k, idx = next(iter(obs.items()))
+    assert m.add_observation(k, pid, idx) is False  # same link again: no-op
+    other = next(p for p in truth if p != pid and k not in truth[p])
+    with pytest.raises(ValueError):
+        m.add_observation(k, other, idx)  # slot taken
+    with pytest.raises(ValueError):
+        m.add_observation(k, pid, N_FEAT - 1)  # point already in this keyframe
+    assert check_invariants(m) == []
+
+
+def test_best_neighbour_kept_when_none_reaches_threshold():
+    rng = np.random.default_rng(3)
+    m = Map()
+    a, b, c = (m.add_keyframe(_frame(i, rng)) for i in range(3))
+    for j in range(5):  # a-b share 5, a-c share 3: both below 15
+        p = m.add_map_point([0, 0, 5], a.id)
+        m.add_observation(a.id, p, j)
+        m.add_observation(b.id, p, j)
+    for j in range(5, 8):
+        p = m.add_map_point([0, 0, 5], a.id)
+        m.add_observation(a.id, p, j)
+        m.add_observation(c.id, p, j)
+    assert list(m.covisible_keyframes(a.id)) == [b.id]
+    m.update_connections(c.id)
+    assert m.keyframe(c.id).parent == a.id
+
+
+def test_replace_point_merges_observations():
+    rng = np.random.default_rng(4)
+    m, truth = _build(rng, span=(3, 3))
+    # Two points sharing exactly one keyframe: the survivor keeps its own slot there.
+    pairs = [(p, q) for p in truth for q in truth if p < q and len(set(truth[p]) & set(truth[q])) == 1]
+    old, new = pairs[0]
+    common = (set(truth[old]) & set(truth[new])).pop()
+    found = m.point(old).found + m.point(new).found
+    m.replace_point(old, new)
+    obs = m.point(new).observations
+    expected = dict(truth[new])
+    expected.update({k: i for k, i in truth[old].items() if k != common})
+    assert obs == expected
+    assert m.point(old).bad and m.point(old).replaced_by == new
+    assert m.keyframe(common).point_ids[truth[old][common]] == -1
+    assert m.point(new).found == found
+    assert check_invariants(m) == []
+    after = {p: (expected if p == new else o) for p, o in truth.items() if p != old}
+    for (a, b), c in _shared_counts(after).items():
+        assert m.covisibility_weight(a, b) == c
+
+
+def test_set_bad_keyframe_keeps_spanning_tree_connected():
+    rng = np.random.default_rng(5)
+    m, _ = _build(rng, n_kf=8, n_pts=900, span=(2, 5))
+    # Cull inner keyframes with children; the tree must stay connected each time.
+    assert m.set_bad_keyframe(m.origin_id) is False
+    for k in (3, 1, 5):
+        kf = m.keyframe(k)
+        children = set(kf.children)
+        assert m.set_bad_keyframe(k)
+        assert check_invariants(m) == [], k
+        for c in children:
+            assert m.keyframe(c).parent not in (-1, k)
+        assert kf.bad and kf.n_points() == 0 and not kf.shared
+    good = set(m.keyframe_ids().tolist())
+    assert good == {0, 2, 4, 6, 7}
+    # Protected keyframes are culled only once released.
+    m.set_not_erase(6)
+    assert m.set_bad_keyframe(6) is False and not m.keyframe(6).bad
+    m.set_erase(6)
+    assert m.keyframe(6).bad and check_invariants(m) == []
+
+
+def test_check_invariants_catches_broken_maps():
+    rng = np.random.default_rng(6)
+    m, truth = _build(rng)
+    assert check_invariants(m) == []
+    pid, obs = next(iter(truth.items()))
+    k, idx = next(iter(obs.items()))
+    m.keyframe(k)._point_ids[idx] = -1  # one end of a link cut behind the Map's back
+    problems = check_invariants(m)
+    assert any(f"point {pid}" in p for p in problems)
+    assert any("covisibility weights" in p for p in problems)
+
+    m2, _ = _build(np.random.default_rng(7))
+    kf = m2.keyframe(1)
+    other = next(iter(kf.shared))
+    kf.shared[other] += 3  # a stale weight
+    assert any("not symmetric" in p for p in check_invariants(m2))
+
+    m3, _ = _build(np.random.default_rng(8))
+    leaf = m3.keyframe(5)
+    m3.keyframe(leaf.parent).children.discard(5)
+    leaf.parent = -1  # detached from the spanning tree
+    assert any("not reachable" in p for p in check_invariants(m3))
+
+
+def test_essential_graph_and_snapshot(tmp_path):
+    rng = np.random.default_rng(9)
+    m, truth = _build(rng, n_kf=6, n_pts=900, span=(2, 3))
+    m.add_loop_edge(0, 5)
+    g = essential_graph(m, min_weight=100)
+    pairs = {(int(g.kf_ids[i]), int(g.kf_ids[j])): int(kd) for (i, j), kd in zip(g.edges, g.kind)}
+    for kf in m.keyframes():
+        if kf.parent >= 0:
+            assert pairs[tuple(sorted((kf.id, kf.parent)))] == TREE
+    assert pairs[(0, 5)] == LOOP
+    counts = _shared_counts(truth)
+    strong = {tuple(sorted(p)) for p, c in counts.items() if c >= 100}
+    assert {p for p, kd in pairs.items() if kd == COVISIBILITY} == strong - {p for p, kd in pairs.items() if kd != COVISIBILITY}
+    snap = snapshot(m)
+    assert len(snap.kf_ids) == 6 and len(snap.point_ids) == len(truth)
+    for (a, b), w in zip(snap.covis_edges, snap.covis_weights):
+        assert counts[(a, b)] == w >= 15
+    snap.save(tmp_path / "map.npz")
+    back = MapSnapshot.load(tmp_path / "map.npz")
+    np.testing.assert_array_equal(back.points, snap.points)
+    np.testing.assert_array_equal(back.covis_edges, snap.covis_edges)
+
+
+def test_point_descriptor_viewing_range_and_scale_prediction():
+    rng = np.random.default_rng(10)
+    desc = rng.integers(0, 256, (6, 32)).astype(np.uint8)
+    ref = np.unpackbits(desc[:, None, :] ^ desc[None, :, :], axis=2).sum(axis=2)
+    np.testing.assert_array_equal(hamming_matrix(desc), ref)
+    base = rng.integers(0, 256, 32).astype(np.uint8)
+    bits = np.unpackbits(base)
+    noisy = []
+    for _ in range(7):
+        b = bits.copy()
+        b[rng.choice(256, 20, replace=False)] ^= 1
+        noisy.append(np.packbits(b))
+    stack = np.array(noisy[:3] + [base] + noisy[3:])
+    np.testing.assert_array_equal(distinctive_descriptor(stack), base)
+
+    P = np.array([0.0, 0.0, 4.0])
+    normal, dmin, dmax = normal_and_depth(P, np.array([[-1.0, 0, 0], [1.0, 0, 0]]), np.array([-1.0, 0, 0]), 2, SCALES)
+    np.testing.assert_allclose(normal, [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(dmax, np.sqrt(17) * 1.2**2)
+    np.testing.assert_allclose(dmin, dmax / 1.2**7)
+
+    dist = 10.0 / 1.2 ** np.array([0.0, 2.5, 3.0, 20.0, -1.0])
+    np.testing.assert_array_equal(predict_scale(dist, np.full(5, 10.0), SCALES), [0, 3, 3, 7, 0])
+
+
+def test_local_window_round_trip():
+    rng = np.random.default_rng(11)
+    m, truth = _build(rng, n_kf=6, n_pts=900, span=(2, 4))
+    w = local_window(m, 3)
+    assert w.kf_ids[0] == 3
+    assert set(w.kf_ids[~w.fixed].tolist()) == {3} | set(m.covisible_keyframes(3).tolist()) - {m.origin_id}
+    local = set(w.kf_ids[: len(m.covisible_keyframes(3)) + 1].tolist())
+    expected_pts = {p for p, o in truth.items() if set(o) & local}
+    assert set(w.point_ids.tolist()) == expected_pts
+    for o in range(0, w.n_observations, 97):
+        kf = m.keyframe(int(w.kf_ids[w.obs_kf[o]]))
+        assert kf.point_ids[w.obs_feat[o]] == w.point_ids[w.obs_pt[o]]
+        np.testing.assert_array_equal(w.uv[o], kf.keypoints.uv[w.obs_feat[o]])
+    outlier = np.zeros(w.n_observations, dtype=bool)
+    outlier[:5] = True
+    new_pts = w.points + 1.0
+    apply_window(m, w, w.T_cw, new_pts, outlier)
+    for o in range(5):
+        kf_id, pid = int(w.kf_ids[w.obs_kf[o]]), int(w.point_ids[w.obs_pt[o]])
+        assert kf_id not in m.point(pid).observations
+        assert m.keyframe(kf_id).point_ids[w.obs_feat[o]] == -1
+    assert check_invariants(m) == []
+    alive = ~m._pts.bad[w.point_ids]
+    np.testing.assert_allclose(m.positions(w.point_ids[alive]), new_pts[alive])
+
+
+def test_update_points_matches_single_point_formulas():
+    rng = np.random.default_rng(12)
+    m, truth = _build(rng, n_kf=5, n_pts=200, span=(2, 5))
+    pids = np.array(sorted(truth))
+    m.update_points(pids)
+    for pid in pids[::7]:
+        obs = truth[pid]
+        kfs = [m.keyframe(k) for k in obs]
+        ref = m.keyframe(m.point(pid).ref_kf)
+        normal, dmin, dmax = normal_and_depth(
+            m.point(pid).position, np.array([kf.center for kf in kfs]), ref.center,
+            int(ref.keypoints.octave[obs[ref.id]]), SCALES,
+        )  # fmt: skip
+        np.testing.assert_allclose(m.point(pid).normal, normal, atol=1e-12)
+        assert m.point(pid).max_dist == pytest.approx(dmax) and m.point(pid).min_dist == pytest.approx(dmin)
+        desc = np.stack([kf.keypoints.desc[obs[kf.id]] for kf in kfs])
+        np.testing.assert_array_equal(m.point(pid).descriptor, distinctive_descriptor(desc))
