@@ -188,3 +188,302 @@ def section_from_yaml(cls: type[T], data: dict[str, Any] | None, path: str | Pat
 
 # --- Stage configurations -------------------------------------------------------------
 # Each stage appends its frozen dataclass below, defaults beside their meaning.
+
+
+@dataclasses.dataclass(frozen=True)
+class MapConfig:
+    """The map model (defaults from ORB-SLAM, Mur-Artal, Montiel & Tardos, T-RO 2015)."""
+
+    # Two keyframes are covisibility neighbours when they share at least this many map
+    # points (ORB-SLAM: theta_min = 15); a keyframe with no such neighbour keeps its best one.
+    covisibility_min_weight: int = 15
+    # Covisibility edges of the essential graph need this many shared points (ORB-SLAM: 100).
+    essential_min_weight: int = 100
+    # Erasing an observation sets its point bad when fewer than this many remain
+    # (ORB-SLAM MapPoint::EraseObservation discards points with nObs <= 2).
+    min_observations_after_erase: int = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class BackendConfig:
+    """Pose-only refinement, bundle adjustment and the Sim(3) pose graph (ORB-SLAM defaults)."""
+
+    # Chi-square 95% quantile for 2 DoF: a monocular observation with whitened squared
+    # error above this is an outlier; the Huber threshold is its square root.
+    chi2_mono: float = 5.991
+    # Pose-only optimisation (ORB-SLAM PoseOptimization): rounds x iterations, each round
+    # restarting from the initial pose with the current inlier set; the robust kernel is
+    # dropped from this round on.
+    pose_rounds: int = 4
+    pose_iterations: int = 10
+    pose_robust_rounds: int = 2
+    # Fewer inliers than this and the pose counts as lost.
+    pose_min_inliers: int = 10
+    # Local BA: robust iterations, then outliers removed and this many more without kernel.
+    local_ba_iterations: int = 5
+    local_ba_refine_iterations: int = 10
+    # Global BA iterations (ORB-SLAM: 10 after a loop, 20 at initialisation).
+    global_ba_iterations: int = 10
+    two_view_ba_iterations: int = 20
+    # Essential-graph optimisation (ORB-SLAM OptimizeEssentialGraph: LM, 20 iterations).
+    pose_graph_iterations: int = 20
+    # Wall-clock cap in seconds on one BA call, checked between LM iterations (0: none).
+    # gtsam holds the GIL during an iteration, so this bounds how long other threads wait.
+    ba_time_budget_s: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class ORBConfig:
+    """ORB extraction (defaults of ORB-SLAM, Mur-Artal, Montiel & Tardos, T-RO 2015, and its
+    ORBextractor: 1000 features, 8 levels, factor 1.2, FAST 20 with fallback 7 per cell)."""
+
+    n_features: int = 1000  # keypoints per image, over all pyramid levels
+    scale_factor: float = 1.2  # scale between consecutive pyramid levels
+    n_levels: int = 8  # pyramid levels
+    ini_th_fast: float = 20.0  # FAST threshold tried first in every cell
+    min_th_fast: float = 7.0  # fallback FAST threshold for cells with no corner at ini_th_fast
+    cell_size: int = 30  # side in pixels of the detection cells of each level
+    edge_threshold: int = 19  # no keypoint closer than this to a level's border
+    patch_size: int = 31  # rBRIEF patch side; orientation patch radius is patch_size // 2
+
+
+@dataclasses.dataclass(frozen=True)
+class InitializerConfig:
+    """Monocular two-view initialisation (ORB-SLAM Initializer, T-RO 2015 section IV)."""
+
+    sigma: float = 1.0  # pixel standard deviation of a level-0 keypoint
+    ransac_iterations: int = 200  # 8-point sets shared by the H and F RANSACs
+    rh_threshold: float = 0.45  # choose the homography when S_H / (S_H + S_F) exceeds this
+    min_parallax_deg: float = 1.0  # reject a reconstruction whose parallax is below this
+    min_triangulated: int = 50  # reject a reconstruction with fewer good points
+    seed: int = 0  # seed of the random 8-point sets (reproducible initialisation)
+    # Refine the winning H / F on its inliers (symmetric transfer / Sampson error) before
+    # decomposing it; ORB-SLAM keeps the 8-point estimate and relies on its global BA.
+    refine: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class FabmapConfig:
+    """Appearance-based loop-closure detection (FAB-MAP 2.0, Cummins & Newman, IJRR 2011; the
+    BoW detectors share ``min_gap``). Detector model, smoothing, new-place prior, motion bias
+    and sample count are openFABMAP's defaults (Glover et al., ICRA 2012: samples/settings.yml
+    PzGe 0.39, PzGne 0, NumSamples 1000; FabMap constructor Pnew 0.9, mBias 0.5, sFactor 0.99;
+    ChowLiuTree smoothing 0.98 f + 0.01)."""
+
+    p_z_given_e: float = 0.39  # detector model p(z = 1 | e = 1): a present element is seen
+    p_z_given_not_e: float = 0.0  # p(z = 1 | e = 0): an absent element is seen (false word)
+    smoothing: float = 0.01  # Chow-Liu probabilities (1 - 2 s) * frequency + s, never 0 or 1
+    new_place: str = "mean_field"  # new-place likelihood: "mean_field" or "sampled" (training)
+    num_samples: int = 1000  # training images drawn for the "sampled" new-place model
+    p_new: float = 0.9  # prior probability that a query shows a place not yet visited
+    motion_model: bool = True  # prior favours the previous match's neighbours (else uniform)
+    motion_bias: float = 0.5  # share of neighbour mass moved forward (1: all forward)
+    prior_spread: float = 0.01  # share of the known-place prior always spread uniformly
+    min_gap: int = 1  # a query is compared with images at least this many frames earlier
+    seed: int = 0  # seed of the training-image sample
+
+
+@dataclasses.dataclass(frozen=True)
+class VizConfig:
+    """Rerun visualisation (``orbslam_hgcn.viz``): what is logged and how often."""
+
+    # Frames between two map logs; the map is also logged on every loop closure (the
+    # corrected map replaces the old one) and, with map_on_keyframe, on a keyframe insert
+    # at least map_min_interval frames after the previous map log (a map log costs about
+    # 2.5 ms at 10k points / 200 keyframes: see bench/bench_viz.py).
+    log_every_map: int = 10
+    map_on_keyframe: bool = True
+    map_min_interval: int = 5
+    # Map point colour: "observations" (observing keyframes, viridis up to obs_colour_max),
+    # "height" (above the first camera, i.e. along world -y), or "none".
+    point_colour: str = "observations"
+    obs_colour_max: int = 15
+    # Camera image: "jpeg" (about 10x smaller files), "raw" (lossless) or "none";
+    # logged every image_every frames (keypoints, pose and plots are logged every frame).
+    image_format: str = "jpeg"
+    jpeg_quality: int = 80
+    image_every: int = 1
+    # Distance of the drawn image plane of keyframe frustums, in world (map) units.
+    frustum_depth: float = 0.1
+
+    def __post_init__(self) -> None:
+        choices = {"point_colour": ("observations", "height", "none"),
+                   "image_format": ("jpeg", "raw", "none")}
+        for key, allowed in choices.items():
+            if getattr(self, key) not in allowed:
+                raise ConfigError(
+                    f"viz.{key}: {getattr(self, key)!r} is not one of {', '.join(allowed)}"
+                )
+        for key in ("log_every_map", "map_min_interval", "image_every", "obs_colour_max"):
+            if int(getattr(self, key)) < 1:
+                raise ConfigError(f"viz.{key}: must be at least 1, found {getattr(self, key)!r}")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ConfigError(f"viz.jpeg_quality: must be in 1..100, found {self.jpeg_quality!r}")
+        if not self.frustum_depth > 0:
+            raise ConfigError(f"viz.frustum_depth: must be positive, found {self.frustum_depth!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class VocabularyConfig:
+    """Visual vocabulary and keyframe database at run time (ORB-SLAM, Mur-Artal et al., T-RO
+    2015, sections III-E and VI: DBoW2 vectors, FeatureVector 4 levels above the words, loop
+    candidates sharing > 0.8 x the most common words, kept above 0.75 x the best group score)."""
+
+    kind: str = "hgcn"  # "hgcn" (the paper's vocabulary) or "orb" (DBoW2 tree baseline)
+    path: str = ""  # vocabulary file; "" = the shipped default of `kind`
+    levels_up: int = 4  # FeatureVector nodes this many levels above the words (HGCN: coarse nodes)
+    min_common_words_ratio: float = 0.8  # candidates share more than this x the most common words
+    retain_score_ratio: float = 0.75  # keep groups scoring above this x the best group score
+    n_covisible: int = 10  # best covisible keyframes whose scores form a candidate's group
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("hgcn", "orb"):
+            raise ConfigError(f"vocabulary.kind: must be 'hgcn' or 'orb', found {self.kind!r}")
+        if self.levels_up < 0:
+            raise ConfigError(f"vocabulary.levels_up: must be >= 0, found {self.levels_up!r}")
+        for key in ("min_common_words_ratio", "retain_score_ratio"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise ConfigError(f"vocabulary.{key}: must be in [0, 1], found {getattr(self, key)!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TreeTrainConfig:
+    """Training of the DBoW2 vocabulary tree (Galvez-Lopez & Tardos, T-RO 2012; ORB-SLAM's
+    ORBvoc uses k = 10, L = 6)."""
+
+    k: int = 10  # children per node
+    levels: int = 5  # depth L: up to k^L words
+    max_iters: int = 10  # Lloyd iterations of k-medians per level
+    seed: int = 0  # k-means++ seeding
+
+
+@dataclasses.dataclass(frozen=True)
+class HgcnTrainConfig:
+    """Training of the HGCN vocabulary ("Semi-supervised Vector-Quantization in Visual SLAM
+    using HGCN": 20-D PCA of the 256 ORB bits, 9-NN graph, 2-layer HGCN of Chami et al.,
+    NeurIPS 2019, labels seeded on a fraction of the nodes by k-means)."""
+
+    n_words: int = 8000  # K: words = seed clusters = output classes
+    pca_dim: int = 20  # PCA dimensions of the descriptor features
+    knn: int = 9  # neighbours per node before symmetrisation
+    knn_exact_max: int = 60000  # exact kNN (faiss flat) up to this many nodes, IVF above
+    knn_nprobe: int = 16  # IVF lists probed by the approximate kNN search
+    label_fraction: float = 0.1  # fraction of nodes given a seed label
+    kmeans_iters: int = 20  # faiss k-means iterations of the label seeding
+    kmeans_points_per_word: int = 64  # k-means trains on at most this many points per word
+    hidden_dim: int = 64  # width of both HGCN layers
+    activation: str = "relu"  # tangent-space activation: relu, leaky_relu, elu, tanh
+    dropout: float = 0.0  # dropout on the layer weights (as HGCN's HypLinear)
+    steps: int = 300  # optimiser steps
+    batch_size: int = 512  # labelled seed nodes per step (each with its 2-hop neighbourhood)
+    lr: float = 0.01  # Adam learning rate
+    weight_decay: float = 0.0  # Adam weight decay
+    init_curvature: float = 1.0  # initial c of every ball (trainable, c = softplus(raw))
+    n_coarse: int = 100  # coarse nodes (k-means of the word centroids) for the FeatureVector
+    nprobe: int = 4  # inverted lists probed at run time (IVF over the word centroids)
+    seed: int = 0  # sampling, initialisation and k-means seeds
+
+    def __post_init__(self) -> None:
+        if self.n_words < 2 or self.pca_dim < 1 or self.knn < 1 or self.hidden_dim < 1:
+            raise ConfigError("hgcn: n_words >= 2, pca_dim >= 1, knn >= 1 and hidden_dim >= 1 are required")
+        if not 0.0 < self.label_fraction <= 1.0:
+            raise ConfigError(f"hgcn.label_fraction: must be in (0, 1], found {self.label_fraction!r}")
+        if self.activation not in ("relu", "leaky_relu", "elu", "tanh"):
+            raise ConfigError(f"hgcn.activation: unknown activation {self.activation!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingConfig:
+    """Monocular tracking (ORB-SLAM, Mur-Artal, Montiel & Tardos, T-RO 2015, Sec. V, and
+    Tracking.cc / ORBmatcher.cc of ORB-SLAM2, whose values are the defaults here)."""
+
+    # Initialisation: a reference frame needs more than this many keypoints, the pair this
+    # many initialisation matches (window 100 px, ratio 0.9), and the map this many points
+    # tracked by the second keyframe after the two-view BA.
+    init_min_keypoints: int = 100
+    init_min_matches: int = 100
+    init_window: float = 100.0
+    init_ratio: float = 0.9
+    init_min_points: int = 100
+    # Constant-velocity model: window th * scale of the last keypoint's level (mono th = 15),
+    # widened to 2 th when fewer than motion_min_matches matches are found; the pose is kept
+    # with at least motion_min_inliers inliers observed by keyframes.
+    motion_window: float = 15.0
+    motion_min_matches: int = 20
+    motion_min_inliers: int = 10
+    # Reference-keyframe tracking: BoW matching with this ratio when a vocabulary is given;
+    # without one, projection of the reference keyframe's points from the last pose in a
+    # window of ref_window * scale pixels. Needs ref_min_matches matches.
+    ref_bow_ratio: float = 0.7
+    ref_window: float = 40.0
+    ref_min_matches: int = 15
+    # Local map: at most this many local keyframes; each keyframe sharing points with the
+    # frame brings its best ref_covisibles covisible keyframes; a point is searched when
+    # seen within acos(frustum_min_cos) of its mean viewing direction, in a window of
+    # local_window * (2.5 or 4 by viewing angle) * scale px (local_window_relocalised just
+    # after a relocalisation), best < local_ratio * second when both lie on one level.
+    max_local_keyframes: int = 80
+    local_covisibles: int = 10
+    frustum_min_cos: float = 0.5
+    local_window: float = 1.0
+    local_window_relocalised: float = 5.0
+    local_ratio: float = 0.8
+    # Tracking succeeds with at least this many inliers after the local map (ORB-SLAM2
+    # TrackLocalMap: 30, or 50 within max_frames of a relocalisation).
+    min_inliers: int = 30
+    min_inliers_relocalised: int = 50
+    # Keyframe decision (ORB-SLAM2 NeedNewKeyFrame, monocular): c1a max_frames passed
+    # (0: the camera fps), c1b min_frames passed and local mapping idle, c2 fewer than
+    # ref_ratio of the reference keyframe's points tracked and more than keyframe_min_inliers.
+    min_frames: int = 0
+    max_frames: int = 0
+    ref_ratio: float = 0.9
+    keyframe_min_inliers: int = 15
+    # A map with at most this many keyframes is discarded when tracking is lost, and
+    # initialisation starts over (ORB-SLAM2: 5).
+    reset_max_keyframes: int = 5
+    # Matches the pose optimiser rejects are kept for the new keyframe (ORB-SLAM2 lets
+    # them pass so that local BA decides on them); False drops them.
+    keyframe_keeps_outliers: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class LocalMappingConfig:
+    """Local mapping (ORB-SLAM, T-RO 2015, Sec. VI; LocalMapping.cc of ORB-SLAM2)."""
+
+    # Recent points are culled when found in fewer than cull_found_ratio of the frames
+    # predicted to see them, or when cull_after_keyframes keyframes after their creation
+    # they are seen by at most cull_max_obs keyframes (monocular: 2); they leave the
+    # recent list after cull_settled_keyframes keyframes.
+    cull_found_ratio: float = 0.25
+    cull_after_keyframes: int = 2
+    cull_max_obs: int = 2
+    cull_settled_keyframes: int = 3
+    # Triangulation against the best triangulation_neighbours covisible keyframes (mono 20),
+    # skipped when baseline / median scene depth of the neighbour is below min_baseline_ratio.
+    triangulation_neighbours: int = 20
+    min_baseline_ratio: float = 0.01
+    # ORB-SLAM2 matches for triangulation without the rotation-consistency check.
+    triangulation_check_orientation: bool = False
+    # Fusion (SearchInNeighbors): best fuse_neighbours covisible keyframes and the best
+    # fuse_second_neighbours of each; projection window fuse_window * scale px.
+    fuse_neighbours: int = 20
+    fuse_second_neighbours: int = 5
+    fuse_window: float = 3.0
+    # Local BA (iterations in BackendConfig) and its wall-clock bound in seconds (0: none).
+    local_ba: bool = True
+    ba_time_budget_s: float = 1.0
+    # Keyframe culling: a keyframe is redundant when more than cull_kf_redundant of its
+    # points are seen by at least cull_kf_min_obs other keyframes at the same or a finer
+    # scale (octave at most one level above).
+    keyframe_culling: bool = True
+    cull_kf_redundant: float = 0.9
+    cull_kf_min_obs: int = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class SystemConfig:
+    """The sequential system: what runs, and how the run is reported."""
+
+    local_mapping: bool = True  # run the local mapper on every new keyframe
+    progress: bool = True  # show a progress bar with fps and the tracking state
