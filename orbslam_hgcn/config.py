@@ -289,11 +289,12 @@ class VizConfig:
 
     # Frames between two map logs; the map is also logged on every loop closure (the
     # corrected map replaces the old one) and, with map_on_keyframe, on a keyframe insert
-    # at least map_min_interval frames after the previous map log (a map log costs about
-    # 2.5 ms at 10k points / 200 keyframes: see bench/bench_viz.py).
-    log_every_map: int = 10
+    # at least map_min_interval frames after the previous map log. A map log costs about
+    # 2.7 ms at 10k points / 200 keyframes, a frame about 2 ms (bench/bench_viz.py): with
+    # these defaults logging stays under 10% of a 30 fps frame budget.
+    log_every_map: int = 20
     map_on_keyframe: bool = True
-    map_min_interval: int = 5
+    map_min_interval: int = 10
     # Map point colour: "observations" (observing keyframes, viridis up to obs_colour_max),
     # "height" (above the first camera, i.e. along world -y), or "none".
     point_colour: str = "observations"
@@ -374,8 +375,12 @@ class HgcnTrainConfig:
     hidden_dim: int = 64  # width of both HGCN layers
     activation: str = "relu"  # tangent-space activation: relu, leaky_relu, elu, tanh
     dropout: float = 0.0  # dropout on the layer weights (as HGCN's HypLinear)
-    steps: int = 300  # optimiser steps
+    epochs: float = 3.0  # passes over the labelled nodes ...
+    min_steps: int = 100  # ... but at least this many optimiser steps
+    max_steps: int = 3000  # ... and at most this many
     batch_size: int = 512  # labelled seed nodes per step (each with its 2-hop neighbourhood)
+    candidate_classes: int = 2048  # classes in each step's softmax when K is larger: the batch's
+    # labels, the labels seeded in its 2-hop neighbourhood, then random classes up to this count
     lr: float = 0.01  # Adam learning rate
     weight_decay: float = 0.0  # Adam weight decay
     init_curvature: float = 1.0  # initial c of every ball (trainable, c = softplus(raw))
@@ -402,6 +407,9 @@ class TrackingConfig:
     # tracked by the second keyframe after the two-view BA.
     init_min_keypoints: int = 100
     init_min_matches: int = 100
+    # Frames are extracted with this many times ORBConfig.n_features while initialising
+    # (ORB-SLAM2's mpIniORBextractor: 2 x nFeatures).
+    init_features_factor: float = 2.0
     init_window: float = 100.0
     init_ratio: float = 0.9
     init_min_points: int = 100
