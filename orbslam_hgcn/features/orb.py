@@ -1,0 +1,198 @@
+"""ORB extraction as ORB-SLAM does it: a scale pyramid, FAST corners spread per cell and by
+quadtree, orientation by intensity centroid, rBRIEF descriptors.
+
+References: Rublee et al., "ORB: an efficient alternative to SIFT or SURF", ICCV 2011 (the
+descriptor and intensity-centroid orientation); Mur-Artal, Montiel & Tardos, "ORB-SLAM: a
+versatile and accurate monocular SLAM system", T-RO 2015, section III-A (8 levels, factor
+1.2, features spread over a grid, per-cell FAST thresholds) and its ORBextractor.
+
+Choices of this implementation:
+
+* the pyramid is built level from level by bilinear resizing, as ORB-SLAM;
+* the detection cell and quadtree node of every pixel are tabulated once per image size
+  (:mod:`orbslam_hgcn.features.pyramid`);
+* one FAST pass at the low threshold replaces ORB-SLAM's per-cell passes, and the quadtree
+  is evaluated on whole arrays (see :mod:`orbslam_hgcn.features.distribute`);
+* descriptors come from ``cv2.ORB.compute`` on each level image (which blurs it with a
+  7x7, sigma 2 Gaussian, as ORB-SLAM does) with the orientation computed here.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import cv2
+import numpy as np
+from numpy.lib.stride_tricks import as_strided
+
+from orbslam_hgcn.config import ORBConfig
+from orbslam_hgcn.features.distribute import cell_threshold_mask, distribute_quadtree, features_per_level
+from orbslam_hgcn.features.keypoints import KeypointSet
+from orbslam_hgcn.features.pyramid import PyramidMaps, build_pyramid, pyramid_maps
+from orbslam_hgcn.geometry.camera import PinholeCamera
+
+log = logging.getLogger(__name__)
+
+_FAST_MARGIN = 3  # FAST needs a radius-3 circle: no corner within 3 px of its window border
+
+
+def circular_patch_offsets(half_patch: int) -> tuple[np.ndarray, np.ndarray]:
+    """(P,) int offsets (du, dv) of ORB-SLAM's symmetric circular orientation patch.
+
+    ORB-SLAM's ``umax``: row ``v`` spans ``|u| <= umax[|v|]``, made symmetric in u and v.
+    """
+    vmax = math.floor(half_patch * math.sqrt(2.0) / 2 + 1)
+    vmin = math.ceil(half_patch * math.sqrt(2.0) / 2)
+    umax = [0] * (half_patch + 1)
+    for v in range(vmax + 1):
+        umax[v] = int(round(math.sqrt(half_patch * half_patch - v * v)))
+    v0 = 0
+    for v in range(half_patch, vmin - 1, -1):
+        while umax[v0] == umax[v0 + 1]:
+            v0 += 1
+        umax[v] = v0
+        v0 += 1
+    du, dv = [], []
+    for v in range(-half_patch, half_patch + 1):
+        w = umax[abs(v)]
+        du.extend(range(-w, w + 1))
+        dv.extend([v] * (2 * w + 1))
+    return np.asarray(du, dtype=np.int64), np.asarray(dv, dtype=np.int64)
+
+
+def patch_moment_weights(half_patch: int) -> np.ndarray:
+    """(P*P, 2) float32 weights (u, v) over the square patch, zero outside ORB-SLAM's circle.
+
+    P = 2 * half_patch + 1; a flattened patch times these weights gives the moments
+    (m10, m01) of the circular patch.
+    """
+    du, dv = circular_patch_offsets(half_patch)
+    p = 2 * half_patch + 1
+    w = np.zeros((p, p, 2), dtype=np.float32)
+    w[dv + half_patch, du + half_patch, 0] = du
+    w[dv + half_patch, du + half_patch, 1] = dv
+    return w.reshape(p * p, 2)
+
+
+def ic_angles(image: np.ndarray, x: np.ndarray, y: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(N,) float32 intensity-centroid orientation in degrees [0, 360) (Rublee et al. 2011).
+
+    image: (H, W) uint8 level image; x, y: (N,) int pixel positions at least the patch
+    radius away from the border; weights: (P*P, 2) from :func:`patch_moment_weights`.
+    ORB-SLAM's IC_Angle: ``atan2(m01, m10)`` on the unblurred level image.
+    """
+    if len(x) == 0:
+        return np.zeros(0, dtype=np.float32)
+    p = int(round(np.sqrt(weights.shape[0])))
+    half = p // 2
+    image = np.ascontiguousarray(image)
+    h, w = image.shape
+    # Every p x p window of the image as a (h-p+1, w-p+1, p, p) view (no copy).
+    s0, s1 = image.strides
+    windows = as_strided(image, (h - p + 1, w - p + 1, p, p), (s0, s1, s0, s1), writeable=False)
+    patches = windows[np.asarray(y, np.intp) - half, np.asarray(x, np.intp) - half]
+    moments = patches.reshape(len(x), p * p).astype(np.float32) @ weights  # (N, 2): m10, m01
+    ang = np.degrees(np.arctan2(moments[:, 1], moments[:, 0]))
+    return np.mod(ang, 360.0).astype(np.float32)
+
+
+class ORBExtractor:
+    """ORB-SLAM's feature extractor: ``extract(image, camera) -> KeypointSet``."""
+
+    def __init__(self, config: ORBConfig | None = None) -> None:
+        self.config = config or ORBConfig()
+        c = self.config
+        if c.n_levels < 1 or c.scale_factor <= 1.0 or c.n_features < 1:
+            raise ValueError("ORBConfig needs n_levels >= 1, scale_factor > 1, n_features >= 1")
+        self.scale_factors = np.array(
+            [float(np.float32(c.scale_factor**level)) for level in range(c.n_levels)], dtype=np.float64
+        )
+        self.n_per_level = features_per_level(c.n_features, c.scale_factor, c.n_levels)
+        self._fast = cv2.FastFeatureDetector_create(int(c.min_th_fast), True)
+        # One-level ORB used only to compute descriptors of given keypoints on a level image.
+        self._orb = cv2.ORB_create(
+            nfeatures=c.n_features,
+            scaleFactor=c.scale_factor,
+            nlevels=1,
+            edgeThreshold=c.edge_threshold,
+            patchSize=c.patch_size,
+        )
+        self._patch_weights = patch_moment_weights(c.patch_size // 2)
+
+    def maps(self, height: int, width: int) -> PyramidMaps:
+        """The per-pixel cell and quadtree-key tables of a (height, width) image (cached)."""
+        c = self.config
+        return pyramid_maps(width, height, c.scale_factor, c.n_levels, c.edge_threshold, float(c.cell_size))
+
+    def _detect(self, levels: list[np.ndarray], maps: PyramidMaps) -> tuple[np.ndarray, ...]:
+        """FAST corners at the low threshold on every level, inside ORB-SLAM's border.
+
+        Returns (x, y, level, score, cell, key), each (N,) over all levels.
+        """
+        lo = self.config.edge_threshold - _FAST_MARGIN
+        parts = []
+        for level, img in enumerate(levels):
+            h, w = img.shape
+            if w <= 2 * self.config.edge_threshold or h <= 2 * self.config.edge_threshold:
+                continue
+            # FAST skips 3 px at the window border, so corners lie edge_threshold inside.
+            kps = self._fast.detect(img[lo : h - lo, lo : w - lo])
+            if not kps:
+                continue
+            pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.intp) + lo
+            x, y = pts[:, 0], pts[:, 1]
+            score = np.array([k.response for k in kps], dtype=np.float32)
+            parts.append(
+                (x, y, np.full(len(x), level, np.int64), score, maps.cell_maps[level][y, x], maps.key_maps[level][y, x])
+            )
+        if not parts:
+            empty = np.zeros(0, np.int64)
+            return empty, empty, empty, np.zeros(0, np.float32), empty, empty
+        return tuple(np.concatenate(col) for col in zip(*parts))
+
+    def extract(self, image: np.ndarray, camera: PinholeCamera | None = None) -> KeypointSet:
+        """ORB keypoints and descriptors of one image.
+
+        image: (H, W) uint8 grayscale. camera: intrinsics used to undistort the keypoints
+        (None: coordinates are used as they are). Returns a KeypointSet ordered by level,
+        ``n_features`` keypoints (fewer on images with too few corners).
+        """
+        image = np.ascontiguousarray(image)
+        if image.ndim != 2 or image.dtype != np.uint8:
+            raise ValueError(f"expected an (H, W) uint8 image, got {image.shape} {image.dtype}")
+        c = self.config
+        levels = build_pyramid(image, c.scale_factor, c.n_levels)
+        x, y, level, score, cell, key = self._detect(levels, self.maps(*image.shape))
+        cand = np.flatnonzero(cell_threshold_mask(cell, score, c.ini_th_fast))
+        keep = distribute_quadtree(key[cand], score[cand], self.n_per_level)
+        sel = cand[keep[np.argsort(key[cand[keep]], kind="stable")]]  # by level, then quadtree order
+        x, y, level, score = x[sel], y[sel], level[sel], score[sel]
+        angle = np.zeros(len(sel), dtype=np.float32)
+        desc = np.zeros((len(sel), 32), dtype=np.uint8)
+        bounds = np.searchsorted(level, np.arange(c.n_levels + 1))
+        for lvl in range(c.n_levels):
+            a, b = bounds[lvl], bounds[lvl + 1]
+            if a == b:
+                continue
+            angle[a:b] = ic_angles(levels[lvl], x[a:b], y[a:b], self._patch_weights)
+            kps = [
+                cv2.KeyPoint(float(u), float(v), float(c.patch_size), float(t))
+                for u, v, t in zip(x[a:b].tolist(), y[a:b].tolist(), angle[a:b].tolist())
+            ]
+            out, d = self._orb.compute(levels[lvl], kps)
+            if d is None or len(out) != b - a:
+                raise RuntimeError("cv2.ORB.compute dropped keypoints that lie inside the edge threshold")
+            desc[a:b] = d
+        scale = self.scale_factors[level].astype(np.float32)
+        uv_raw = np.stack([x, y], axis=1).astype(np.float32) * scale[:, None]
+        uv = camera.undistort_points(uv_raw) if camera is not None else uv_raw.astype(np.float64)
+        return KeypointSet(
+            uv_raw=uv_raw,
+            uv=uv,
+            octave=level.astype(np.int32),
+            angle=angle,
+            response=score,
+            desc=desc,
+            scale_factors=self.scale_factors.copy(),
+        )

@@ -1,0 +1,97 @@
+"""The scale pyramid of an image and per-pixel lookup tables of its levels.
+
+The tables give, for any pixel of a level, ORB-SLAM's detection cell and the pixel's
+quadtree key (:mod:`orbslam_hgcn.features.distribute`); they depend only on the image
+size, so they are computed once and every detected corner is then classified by a lookup.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from orbslam_hgcn.features.distribute import cell_ids, quadtree_keys
+
+log = logging.getLogger(__name__)
+
+_FAST_MARGIN = 3  # FAST needs a radius-3 circle: ORB-SLAM's detection area starts edge - 3 in
+
+
+def level_sizes(width: int, height: int, scale_factor: float, n_levels: int) -> list[tuple[int, int]]:
+    """(w, h) of each level: ``round(W / s**l)`` with ``s**l`` in float32 as OpenCV does."""
+    sizes = []
+    for level in range(n_levels):
+        s = float(np.float32(scale_factor**level))
+        sizes.append((int(round(width / s)), int(round(height / s))))
+    return sizes
+
+
+def build_pyramid(image: np.ndarray, scale_factor: float, n_levels: int) -> list[np.ndarray]:
+    """Images of the scale pyramid, each resized from the previous level.
+
+    image: (H, W) uint8. Bilinear resize as ORB-SLAM (``INTER_LINEAR``; ``cv2.ORB`` uses the
+    bit-exact variant, which is slower and differs by at most one grey level).
+    Returns L arrays (H_l, W_l) uint8.
+    """
+    h, w = image.shape
+    sizes = level_sizes(w, h, scale_factor, n_levels)
+    levels = [image]
+    for size in sizes[1:]:
+        levels.append(cv2.resize(levels[-1], size, interpolation=cv2.INTER_LINEAR))
+    return levels
+
+
+@dataclass(frozen=True, eq=False)
+class PyramidMaps:
+    """Per-pixel lookup tables of the pyramid levels of one image size.
+
+    sizes:     (L, 2) int64 (w, h) of each level
+    bounds:    (L, 4) float64 detection area (min_x, max_x, min_y, max_y) of each level in
+               its own pixels: ORB-SLAM's minBorder = edge - 3 to size - minBorder (FAST
+               then finds corners at least ``edge`` pixels inside the level)
+    cell_maps: L arrays (h, w) int32, the detection cell of each pixel
+               (:func:`~orbslam_hgcn.features.distribute.cell_ids`), -1 outside the area
+    key_maps:  L arrays (h, w) int64, the quadtree key of each pixel
+               (:func:`~orbslam_hgcn.features.distribute.quadtree_keys`), -1 outside
+    """
+
+    sizes: np.ndarray
+    bounds: np.ndarray
+    cell_maps: list[np.ndarray]
+    key_maps: list[np.ndarray]
+
+    @classmethod
+    def create(
+        cls, width: int, height: int, scale_factor: float, n_levels: int, edge: int, cell_size: float
+    ) -> PyramidMaps:
+        """Evaluate the cell and key functions once for every pixel of every level."""
+        sizes = level_sizes(width, height, scale_factor, n_levels)
+        lo = edge - _FAST_MARGIN
+        bounds = np.array([[lo, w - lo, lo, h - lo] for w, h in sizes], dtype=np.float64)
+        cell_maps, key_maps = [], []
+        for level, (w, h) in enumerate(sizes):
+            cmap = np.full((h, w), -1, dtype=np.int32)
+            kmap = np.full((h, w), -1, dtype=np.int64)
+            if w > 2 * lo and h > 2 * lo:
+                yy, xx = np.mgrid[lo : h - lo, lo : w - lo]
+                x = xx.ravel().astype(np.float64)
+                y = yy.ravel().astype(np.float64)
+                g = np.full(len(x), level, dtype=np.int64)
+                cells = cell_ids(x, y, g, bounds, cell_size)
+                cmap[lo : h - lo, lo : w - lo] = cells.reshape(yy.shape)
+                kmap[lo : h - lo, lo : w - lo] = quadtree_keys(x, y, g, bounds).reshape(yy.shape)
+            cell_maps.append(cmap)
+            key_maps.append(kmap)
+        return cls(np.asarray(sizes, dtype=np.int64), bounds, cell_maps, key_maps)
+
+
+@functools.lru_cache(maxsize=8)
+def pyramid_maps(
+    width: int, height: int, scale_factor: float, n_levels: int, edge: int, cell_size: float
+) -> PyramidMaps:
+    """The :class:`PyramidMaps` of one image size and pyramid, built once per process."""
+    return PyramidMaps.create(width, height, scale_factor, n_levels, edge, cell_size)

@@ -1,0 +1,188 @@
+"""ORB extraction: level budget, quadtree spreading, orientation, descriptors, undistortion."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from orbslam_hgcn.config import ORBConfig, load_camera
+from orbslam_hgcn.features.distribute import distribute_quadtree, features_per_level, quadtree_keys
+from orbslam_hgcn.features.orb import ORBExtractor, circular_patch_offsets, ic_angles, patch_moment_weights
+from orbslam_hgcn.features.pyramid import build_pyramid
+
+TUM_FRAME = "rgb/1341847980.722988.png"
+
+
+def _tum_image(tum_sample, name=TUM_FRAME):
+    img = cv2.imread(str(tum_sample / name), cv2.IMREAD_GRAYSCALE)
+    assert img is not None
+    return img
+
+
+@pytest.fixture(scope="module")
+def extractor():
+    return ORBExtractor(ORBConfig())
+
+
+def test_features_per_level_is_orbslam_series():
+    n = features_per_level(1000, 1.2, 8)
+    assert n.sum() == 1000
+    assert n.tolist()[:3] == [217, 181, 151]
+    np.testing.assert_allclose(n[1:7] / n[:6], 1 / 1.2, atol=0.02)
+
+
+def _reference_octree(x, y, resp, n_wanted, bounds):
+    """Plain port of ORB-SLAM's DistributeOctTree (nodes split at their float midpoints)."""
+    min_x, max_x, min_y, max_y = bounds
+    n_ini = max(int(round((max_x - min_x) / (max_y - min_y))), 1)
+    hx = (max_x - min_x) / n_ini
+    idx = np.arange(len(x))
+
+    def children(node):
+        x0, x1, y0, y1, ids = node
+        xm, ym = (x0 + x1) / 2, (y0 + y1) / 2
+        out = []
+        for a0, a1, b0, b1 in ((x0, xm, y0, ym), (xm, x1, y0, ym), (x0, xm, ym, y1), (xm, x1, ym, y1)):
+            sel = ids[(x[ids] >= a0) & (x[ids] < a1) & (y[ids] >= b0) & (y[ids] < b1)]
+            if len(sel):
+                out.append((a0, a1, b0, b1, sel))
+        return out
+
+    nodes = []
+    for i in range(n_ini):
+        ids = idx[(x >= min_x + i * hx) & (x < min_x + (i + 1) * hx)]
+        if len(ids):
+            nodes.append((min_x + i * hx, min_x + (i + 1) * hx, min_y, max_y, ids))
+    while True:
+        prev = len(nodes)
+        new, expandable = [], []
+        for nd in nodes:
+            if len(nd[4]) == 1:
+                new.append(nd)
+                continue
+            for ch in children(nd):
+                new.append(ch)
+                if len(ch[4]) > 1:
+                    expandable.append(ch)
+        nodes = new
+        if len(nodes) >= n_wanted or len(nodes) == prev:
+            break
+        if len(nodes) + 3 * len(expandable) > n_wanted:
+            while True:
+                prev = len(nodes)
+                todo = sorted(expandable, key=lambda nd: len(nd[4]))
+                expandable = []
+                for nd in reversed(todo):
+                    nodes = [m for m in nodes if m is not nd]
+                    for ch in children(nd):
+                        nodes.append(ch)
+                        if len(ch[4]) > 1:
+                            expandable.append(ch)
+                    if len(nodes) >= n_wanted:
+                        break
+                if len(nodes) >= n_wanted or len(nodes) == prev:
+                    break
+            break
+    return {int(nd[4][np.argmax(resp[nd[4]])]) for nd in nodes}
+
+
+def test_quadtree_matches_orbslam_reference():
+    rng = np.random.default_rng(2)
+    bounds = (16.0, 624.0, 16.0, 464.0)
+    # Clustered corners: a dense blob plus a sparse background, as on real images.
+    x = np.concatenate([rng.normal(200, 30, 1500), rng.uniform(16, 624, 500)])
+    y = np.concatenate([rng.normal(150, 25, 1500), rng.uniform(16, 464, 500)])
+    keep = (x >= 16) & (x < 624) & (y >= 16) & (y < 464)
+    x, y = np.round(x[keep]), np.round(y[keep])
+    _, first = np.unique(x * 1000 + y, return_index=True)
+    x, y = x[first], y[first]
+    resp = rng.uniform(7, 100, len(x))
+    for n_wanted in (50, 217, 400):
+        keys = quadtree_keys(x, y, np.zeros(len(x), int), np.array([bounds]))
+        ours = distribute_quadtree(keys, resp, np.array([n_wanted]))
+        ref = _reference_octree(x, y, resp, n_wanted, bounds)
+        assert len(ours) == n_wanted
+        assert n_wanted <= len(ref) <= n_wanted + 3
+        assert len(set(ours.tolist()) & ref) >= 0.9 * n_wanted
+
+
+def _grid_stats(uv, width, height, gx=8, gy=6):
+    cx = np.clip((uv[:, 0] * gx / width).astype(int), 0, gx - 1)
+    cy = np.clip((uv[:, 1] * gy / height).astype(int), 0, gy - 1)
+    counts = np.bincount(cy * gx + cx, minlength=gx * gy)
+    return (counts > 0).mean(), counts.std() / counts.mean()
+
+
+def test_orb_on_tum_image_count_spread_octaves(tum_sample, extractor):
+    img = _tum_image(tum_sample)
+    cam = load_camera("tum_fr3")
+    kps = extractor.extract(img, cam)
+    assert abs(len(kps) - 1000) <= 50
+    assert kps.desc.shape == (len(kps), 32) and kps.desc.dtype == np.uint8
+    assert set(np.unique(kps.octave).tolist()) == set(range(8))
+    np.testing.assert_allclose(kps.scale_factors, 1.2 ** np.arange(8), rtol=1e-6)
+    # Every keypoint lies at least the edge threshold inside its level.
+    lvl_xy = kps.uv_raw / kps.scale_factors[kps.octave][:, None]
+    sizes = np.array([[np.round(640 / s), np.round(480 / s)] for s in kps.scale_factors])[kps.octave]
+    assert np.all(lvl_xy >= 19 - 1e-3) and np.all(lvl_xy < sizes - 19 + 1e-3)
+    occ, cv = _grid_stats(kps.uv, 640, 480)
+    plain = cv2.KeyPoint_convert(cv2.ORB_create(1000).detect(img, None))
+    occ_cv2, cv_cv2 = _grid_stats(plain, 640, 480)
+    assert occ >= 0.8
+    assert occ >= occ_cv2 + 0.2
+    assert cv < 0.6 * cv_cv2
+
+
+def test_orb_descriptors_equal_opencv_for_same_keypoints(tum_sample, extractor):
+    img = _tum_image(tum_sample)
+    kps = extractor.extract(img)
+    levels = build_pyramid(img, 1.2, 8)
+    orb = cv2.ORB_create(nfeatures=1000, scaleFactor=1.2, nlevels=1, edgeThreshold=19, patchSize=31)
+    for lvl, level_img in enumerate(levels):
+        idx = np.flatnonzero(kps.octave == lvl)
+        xy = kps.uv_raw[idx] / np.float32(kps.scale_factors[lvl])
+        cv_kps = [cv2.KeyPoint(float(u), float(v), 31.0, float(a)) for (u, v), a in zip(xy, kps.angle[idx])]
+        out, desc = orb.compute(level_img, cv_kps)
+        assert len(out) == len(idx)
+        np.testing.assert_array_equal(desc, kps.desc[idx])
+    # Level 0 also equals OpenCV's own multi-scale ORB given the same keypoints.
+    idx = np.flatnonzero(kps.octave == 0)
+    cv_kps = [
+        cv2.KeyPoint(float(u), float(v), 31.0, float(a), 0.0, 0) for (u, v), a in zip(kps.uv_raw[idx], kps.angle[idx])
+    ]
+    orb8 = cv2.ORB_create(nfeatures=1000, scaleFactor=1.2, nlevels=8, edgeThreshold=19, patchSize=31)
+    _, desc0 = orb8.compute(img, cv_kps)
+    np.testing.assert_array_equal(desc0, kps.desc[idx])
+
+
+def test_orientation_equals_loop_reference(tum_sample):
+    img = _tum_image(tum_sample)
+    rng = np.random.default_rng(3)
+    x = rng.integers(20, 620, 25)
+    y = rng.integers(20, 460, 25)
+    du, dv = circular_patch_offsets(15)
+    ref = []
+    for xi, yi in zip(x, y):
+        m10 = m01 = 0.0
+        for a, b in zip(du, dv):
+            val = float(img[yi + b, xi + a])
+            m10 += a * val
+            m01 += b * val
+        ref.append(np.degrees(np.arctan2(m01, m10)) % 360.0)
+    got = ic_angles(img, x, y, patch_moment_weights(15))
+    diff = np.abs((got - np.array(ref) + 180.0) % 360.0 - 180.0)
+    assert diff.max() < 1e-3
+    # The patch is ORB-SLAM's symmetric disc of radius 15.
+    assert len(du) == len(set(zip(du.tolist(), dv.tolist())))
+    assert np.all(du**2 + dv**2 <= 15**2 + 15)
+
+
+def test_euroc_keypoints_are_undistorted(euroc_sample, extractor):
+    cam = load_camera("euroc_cam0")
+    path = sorted((euroc_sample / "mav0" / "cam0" / "data").glob("*.png"))[0]
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    kps = extractor.extract(img, cam)
+    assert abs(len(kps) - 1000) <= 50
+    np.testing.assert_allclose(kps.uv, cam.undistort_points(kps.uv_raw), atol=1e-9)
+    assert np.max(np.linalg.norm(kps.uv - kps.uv_raw, axis=1)) > 5.0
