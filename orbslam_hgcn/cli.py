@@ -64,3 +64,293 @@ def main(argv: Sequence[str] | None = None) -> int:
 # --- Subcommands ------------------------------------------------------------------------
 # Each block below adds one subcommand; handlers import their stage lazily so that
 # ``orbslam-hgcn --help`` stays fast.
+
+
+@subcommand
+def _add_eval(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "eval",
+        help="ATE/RPE of an estimated trajectory against ground truth (TUM files)",
+        description="Associate by timestamp, align (Umeyama), print ATE/RPE, write ate.json "
+        "and plots.",
+    )
+    p.add_argument("--gt", required=True, help="ground-truth trajectory, TUM format")
+    p.add_argument("--est", required=True, help="estimated trajectory, TUM format")
+    p.add_argument("--align", choices=("sim3", "se3", "none"), default="sim3",
+                   help="alignment before ATE (default sim3: monocular scale unknown)")
+    p.add_argument("--max-diff", type=float, default=0.02,
+                   help="largest timestamp gap for a pose pair, seconds (default 0.02)")
+    p.add_argument("--t-offset", type=float, default=0.0,
+                   help="seconds added to the estimate's timestamps when associating")
+    p.add_argument("--delta", type=float, default=1.0, help="RPE step (default 1)")
+    p.add_argument("--delta-unit", choices=("frames", "meters"), default="frames",
+                   help="unit of --delta (default frames)")
+    p.add_argument("--out", default=None, help="output folder (default: the folder of --est)")
+    p.add_argument("--no-plot", action="store_true", help="write ate.json only, no PNGs")
+    p.set_defaults(func=_run_eval)
+
+
+def _run_eval(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from orbslam_hgcn.evaluation.ate import evaluate
+    from orbslam_hgcn.evaluation.report import format_table, write_report
+    from orbslam_hgcn.trajectory import read_tum
+
+    gt_path, est_path = Path(args.gt), Path(args.est)
+    result = evaluate(
+        read_tum(gt_path), read_tum(est_path), align=args.align, max_diff=args.max_diff,
+        delta=args.delta, delta_unit=args.delta_unit, t_offset=args.t_offset,
+        gt_name=str(gt_path), est_name=str(est_path),
+    )
+    out = Path(args.out) if args.out else est_path.resolve().parent
+    paths = write_report(result, out, plot=not args.no_plot)
+    print(format_table(result))
+    for path in paths.values():
+        print(f"wrote {path}")
+    return 0
+
+
+@subcommand
+def _add_lcd(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "lcd",
+        help="compare loop-closure detectors (BoW, HGCN-BoW, FAB-MAP 2.0, HGCN-FABMAP)",
+        description="Train each detector on --train, run it over --test, score its confusion "
+        "matrix against the ground-truth loop matrix (recall, accuracy = precision, recall at "
+        "100%% precision, AUC); write confusion matrices, PR curves and lcd_results.json.",
+    )
+    p.add_argument("--method", default="all",
+                   help="bow, hgcn-bow, fabmap2, hgcn-fabmap, a comma list, or all (default)")
+    p.add_argument("--train", required=True, help="training sequence (image folder or dataset)")
+    p.add_argument("--test", required=True, help="test sequence (image folder or dataset)")
+    p.add_argument("--gt", default=None,
+                   help="ground-truth loop matrix of the test images (.mat, .txt, .csv, .npy); "
+                   "default TEST/loop_gt.npy")
+    p.add_argument("--vocab", default=None,
+                   help="one vocabulary for every method: orb, hgcn or a file (default: ORB tree "
+                   "for bow/fabmap2, HGCN vocabulary for hgcn-*)")
+    p.add_argument("--vocab-orb", default=None, help="ORB-tree vocabulary file for bow and fabmap2")
+    p.add_argument("--vocab-hgcn", default=None, help="HGCN vocabulary file for hgcn-bow and hgcn-fabmap")
+    p.add_argument("--features", choices=("orb", "sift"), default="orb",
+                   help="local features (sift stands in for SURF; default orb)")
+    p.add_argument("--n-features", type=int, default=1000, help="features per image (default 1000)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--config", default=None, help="YAML file with a 'fabmap:' section (FabmapConfig)")
+    p.add_argument("--new-place", choices=("mean_field", "sampled"), default=None,
+                   help="FAB-MAP new-place likelihood (default from config: mean_field)")
+    p.add_argument("--min-gap", type=int, default=None,
+                   help="compare a query only with images at least this many frames earlier")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="FAB-MAP acceptance probability for recall/accuracy (default 0.99)")
+    p.add_argument("--bow-threshold", type=float, default=None,
+                   help="BoW acceptance cosine similarity for recall/accuracy (default 0.3)")
+    p.add_argument("--stride", type=int, default=1, help="use every stride-th image of both sequences")
+    p.add_argument("--limit", type=int, default=None, help="use at most this many images of each")
+    p.set_defaults(func=_run_lcd)
+
+
+def _run_lcd(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from orbslam_hgcn.config import FabmapConfig, load_yaml, section_from_yaml
+    from orbslam_hgcn.placerec import lcd
+
+    cfg = FabmapConfig()
+    if args.config:
+        cfg = section_from_yaml(FabmapConfig, load_yaml(args.config), args.config, "fabmap")
+    if args.new_place is not None:
+        cfg = dataclasses.replace(cfg, new_place=args.new_place)
+    if args.min_gap is not None:
+        cfg = dataclasses.replace(cfg, min_gap=args.min_gap)
+    results, paths = lcd.lcd_command(
+        method=args.method, train=args.train, test=args.test, gt=args.gt, out=args.out,
+        features=args.features, vocab=args.vocab, vocab_orb=args.vocab_orb, vocab_hgcn=args.vocab_hgcn,
+        cfg=cfg, stride=args.stride, limit=args.limit, n_features=args.n_features,
+        fabmap_threshold=lcd.DEFAULT_FABMAP_THRESHOLD if args.threshold is None else args.threshold,
+        bow_threshold=lcd.DEFAULT_BOW_THRESHOLD if args.bow_threshold is None else args.bow_threshold,
+    )
+    print(lcd.format_table(results))
+    for path in paths:
+        print(f"wrote {path}")
+    return 0
+
+
+@subcommand
+def _add_viz_demo(sub: argparse._SubParsersAction) -> None:
+    from orbslam_hgcn.viz.sinks import add_rerun_argument
+
+    p = sub.add_parser(
+        "viz-demo",
+        help="log a synthetic SLAM run to rerun (checks the viewer set-up)",
+        description="A camera circling random map points, closing one loop; logged as a SLAM "
+        "run would be. Without a display, spawn saves to an .rrd instead.",
+    )
+    add_rerun_argument(p)
+    p.add_argument("--frames", type=int, default=120, help="frames to log (default 120)")
+    p.set_defaults(func=_run_viz_demo)
+
+
+def _run_viz_demo(args: argparse.Namespace) -> int:
+    from orbslam_hgcn.errors import ConfigError
+    from orbslam_hgcn.viz.demo import demo_camera, fake_run, replay
+    from orbslam_hgcn.viz.rerun_logger import RerunLogger
+    from orbslam_hgcn.viz.sinks import parse_rerun_arg
+
+    if args.frames < 1:
+        raise ConfigError(f"--frames: must be at least 1, found {args.frames}")
+    mode, target = parse_rerun_arg(args.rerun or ["spawn"])
+    with RerunLogger(demo_camera(), mode, target, recording_name="viz-demo") as logger:
+        replay(logger, fake_run(args.frames, n_points=5000, n_keypoints=500, loop_at=(args.frames * 2) // 3 or None))
+    print(f"rerun {logger.mode}: {logger.target}")
+    return 0
+
+
+@subcommand
+def _add_synth(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "synth",
+        help="render a synthetic sequence (TUM layout) with exact ground truth",
+        description="Render a synthetic office sequence into OUT in the TUM RGB-D layout: rgb/, rgb.txt, "
+        "groundtruth.txt, camera.yaml, scene.json (and loop_gt.npy, depth/ on request).",
+    )
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--trajectory", choices=("loop", "replay"), default="loop",
+                   help="generated loop round the desk (default) or a replayed TUM ground truth")
+    p.add_argument("--gt", help="TUM ground-truth file to replay (with --trajectory replay)")
+    n = p.add_mutually_exclusive_group()
+    n.add_argument("--frames", type=int, help="number of frames (default: 30 s of loop, or the whole replay)")
+    n.add_argument("--duration", type=float, help="length in seconds")
+    p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
+    p.add_argument("--noise", type=float, default=0.0, help="Gaussian sensor noise sigma in grey levels")
+    p.add_argument("--exposure-drift", type=float, default=0.0,
+                   help="slow relative gain swing, e.g. 0.2 for +-20%% (default 0)")
+    p.add_argument("--motion-blur", action="store_true", help="average sub-frame renders over the shutter time")
+    p.add_argument("--seed", type=int, default=0, help="seed of sensor noise and exposure drift")
+    p.add_argument("--scene-seed", type=int, default=0,
+                   help="seed of the room layout and the loop's wobble (and of the textures)")
+    p.add_argument("--texture-seed", type=int, help="seed of the surface textures (default: the scene seed)")
+    p.add_argument("--repeated-texture", action="store_true",
+                   help="one texture patch repeated on every surface (a false-loop test)")
+    p.add_argument("--texel-scale", type=float, default=1.0, help="texel sizes times this (coarser, faster)")
+    p.add_argument("--loop-gt", action="store_true", help="write loop_gt.npy (frame pairs that revisit a place)")
+    p.add_argument("--depth", action="store_true", help="also write TUM-style depth images")
+    p.add_argument("--force", action="store_true", help="overwrite a non-empty output folder")
+    p.set_defaults(func=_run_synth)
+
+
+def _run_synth(args: argparse.Namespace) -> int:
+    from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+
+    options = SynthOptions(
+        trajectory=args.trajectory, gt=args.gt, frames=args.frames, duration=args.duration, fps=args.fps,
+        noise=args.noise, exposure_drift=args.exposure_drift, motion_blur=args.motion_blur, seed=args.seed,
+        scene_seed=args.scene_seed, texture_seed=args.texture_seed, repeated_texture=args.repeated_texture,
+        texel_scale=args.texel_scale, loop_gt=args.loop_gt, depth=args.depth,
+    )
+    out = render_sequence(args.out, options, force=args.force)
+    print(out)
+    return 0
+
+
+@subcommand
+def _add_run(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="run monocular SLAM over a dataset; write trajectories and stats",
+        description="Track and map a sequence (tracking and local mapping in order) and write "
+        "KeyFrameTrajectory.txt, CameraTrajectory.txt (TUM format) and stats.json; prints the "
+        "ATE after Sim(3) alignment when the dataset has ground truth.",
+    )
+    p.add_argument("path", help="dataset folder (or video file)")
+    p.add_argument("--dataset", choices=("tum", "euroc", "kitti", "folder", "video"), default=None,
+                   help="dataset kind (default: detected from the folder)")
+    p.add_argument("--config", default=None,
+                   help="YAML with the camera and/or stage sections (orb, initializer, tracking, "
+                   "local_mapping, backend, map, system); a shipped camera name such as tum_fr3")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--no-loop", action="store_true", help="run without loop closing")
+    p.add_argument("--vocab", default=None, metavar="orb|hgcn|FILE|none",
+                   help="visual vocabulary: the shipped orb or hgcn one, a vocabulary file, or none "
+                   "(default hgcn; needed for loop closing and relocalisation)")
+    p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_run_run)
+
+
+def _run_run(args: argparse.Namespace) -> int:
+    from orbslam_hgcn.pipeline.run import format_report, run_dataset
+
+    report = run_dataset(
+        args.path, args.out, kind=args.dataset, config=args.config, max_frames=args.max_frames,
+        loop_closing=not args.no_loop, progress=not args.no_progress, vocab=args.vocab,
+    )
+    for line in format_report(report):
+        print(line)
+    for path in report.paths.values():
+        print(f"wrote {path}")
+    return 130 if report.interrupted else 0
+
+
+@subcommand
+def _add_vocab(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("vocab", help="train or inspect a visual vocabulary (HGCN or DBoW2-style ORB tree)")
+    vsub = p.add_subparsers(dest="vocab_command", metavar="ACTION", required=True)
+    t = vsub.add_parser("train", help="train a vocabulary from images")
+    t.add_argument("--kind", choices=("hgcn", "orb"), required=True, help="vocabulary kind")
+    t.add_argument("--images", nargs="+", required=True,
+                   help="image sources: TUM/EuRoC/KITTI sequence folders, image folders or image files")
+    t.add_argument("--words", type=int, default=None,
+                   help="word count (hgcn: exactly, default 8000; orb: sets the depth L = round(log_k words))")
+    t.add_argument("--out", required=True, help="output vocabulary file (.npz)")
+    t.add_argument("--max-images", type=int, default=None, help="use at most this many images, evenly spread")
+    t.add_argument("--features", type=int, default=1000, help="ORB features per image (default 1000)")
+    t.add_argument("--levels", type=int, default=None, help="orb: tree depth L (default 5)")
+    t.add_argument("--branching", type=int, default=None, help="orb: children per node k (default 10)")
+    t.add_argument("--label-fraction", type=float, default=None, help="hgcn: fraction of seeded nodes (0.1)")
+    t.add_argument("--epochs", type=float, default=None, help="hgcn: passes over the seeded nodes (3)")
+    t.add_argument("--config", default=None,
+                   help="YAML with 'hgcn:' / 'vocab_tree:' sections overriding training parameters")
+    t.add_argument("--trained-on", default=None, help="description of the imagery kept in the metadata")
+    t.add_argument("--tracks", action="store_true",
+                   help="hgcn: share seed labels along feature tracks matched between consecutive images")
+    t.add_argument("--keep-cache", action="store_true", help="keep the descriptor cache <out>.descriptors.npz")
+    t.set_defaults(func=_run_vocab_train)
+    i = vsub.add_parser("info", help="print a vocabulary's metadata")
+    i.add_argument("file", help="vocabulary file, or 'orb' / 'hgcn' for the shipped default")
+    i.set_defaults(func=_run_vocab_info)
+
+
+def _run_vocab_train(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from orbslam_hgcn.config import HgcnTrainConfig, TreeTrainConfig, load_yaml, section_from_yaml
+    from orbslam_hgcn.vocabulary.train import train_from_images
+
+    data = load_yaml(args.config) if args.config else {}
+    tree = section_from_yaml(TreeTrainConfig, data, args.config or "", "vocab_tree")
+    hgcn = section_from_yaml(HgcnTrainConfig, data, args.config or "", "hgcn")
+    if args.levels is not None:
+        tree = dataclasses.replace(tree, levels=args.levels)
+    if args.branching is not None:
+        tree = dataclasses.replace(tree, k=args.branching)
+    if args.label_fraction is not None:
+        hgcn = dataclasses.replace(hgcn, label_fraction=args.label_fraction)
+    if args.epochs is not None:
+        hgcn = dataclasses.replace(hgcn, epochs=args.epochs)
+    words = args.words if (args.kind == "hgcn" or args.levels is None) else None
+    vocab = train_from_images(
+        args.kind, args.images, args.out, words=words, max_images=args.max_images, n_features=args.features,
+        tree=tree, hgcn=hgcn, trained_on=args.trained_on, tracks=args.tracks, keep_cache=args.keep_cache,
+    )
+    print(vocab.metadata.describe())
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _run_vocab_info(args: argparse.Namespace) -> int:
+    from orbslam_hgcn.vocabulary import load_vocabulary
+
+    vocab = load_vocabulary(args.file)
+    print(vocab.metadata.describe())
+    return 0

@@ -267,8 +267,8 @@ class FabmapConfig:
     """Appearance-based loop-closure detection (FAB-MAP 2.0, Cummins & Newman, IJRR 2011; the
     BoW detectors share ``min_gap``). Detector model, smoothing, new-place prior, motion bias
     and sample count are openFABMAP's defaults (Glover et al., ICRA 2012: samples/settings.yml
-    PzGe 0.39, PzGne 0, NumSamples 1000; FabMap constructor Pnew 0.9, mBias 0.5, sFactor 0.99;
-    ChowLiuTree smoothing 0.98 f + 0.01)."""
+    PzGe 0.39, PzGne 0, NumSamples 1000; FabMap constructor Pnew 0.9, mBias 0.5; ChowLiuTree
+    smoothing 0.98 f + 0.01); prior_spread 0.01 stands for its 1% posterior smoothing (sFactor 0.99)."""
 
     p_z_given_e: float = 0.39  # detector model p(z = 1 | e = 1): a present element is seen
     p_z_given_not_e: float = 0.0  # p(z = 1 | e = 0): an absent element is seen (false word)
@@ -372,13 +372,14 @@ class HgcnTrainConfig:
     label_fraction: float = 0.1  # fraction of nodes given a seed label
     kmeans_iters: int = 20  # faiss k-means iterations of the label seeding
     kmeans_points_per_word: int = 64  # k-means trains on at most this many points per word
-    hidden_dim: int = 64  # width of both HGCN layers
+    hidden_dim: int = 32  # width of both HGCN layers
     activation: str = "relu"  # tangent-space activation: relu, leaky_relu, elu, tanh
     dropout: float = 0.0  # dropout on the layer weights (as HGCN's HypLinear)
-    epochs: float = 3.0  # passes over the labelled nodes ...
+    epochs: float = 2.0  # passes over the labelled nodes ...
     min_steps: int = 100  # ... but at least this many optimiser steps
     max_steps: int = 3000  # ... and at most this many
     batch_size: int = 512  # labelled seed nodes per step (each with its 2-hop neighbourhood)
+    sample_neighbours: int = 5  # layer-1 neighbours sampled per node in training (0: all, exact)
     candidate_classes: int = 2048  # classes in each step's softmax when K is larger: the batch's
     # labels, the labels seeded in its 2-hop neighbourhood, then random classes up to this count
     lr: float = 0.01  # Adam learning rate
@@ -478,9 +479,15 @@ class LocalMappingConfig:
     fuse_neighbours: int = 20
     fuse_second_neighbours: int = 5
     fuse_window: float = 3.0
-    # Local BA (iterations in BackendConfig) and its wall-clock bound in seconds (0: none).
+    # Local BA (iterations in BackendConfig: 5 robust, outliers out, 10 more) and a cap on
+    # its CPU time in seconds, checked between iterations (0: none). The iterations bound a
+    # typical window to well under the cap; the cap guards against unusually large windows.
+    # CPU time, not wall time, so that results do not depend on the machine's load.
     local_ba: bool = True
-    ba_time_budget_s: float = 1.0
+    ba_cpu_budget_s: float = 1.5
+    # At most this many free keyframes in local BA: the new one and its best covisible
+    # ones; the other covisible keyframes are held fixed (0: all free, as ORB-SLAM).
+    ba_max_keyframes: int = 0
     # Keyframe culling: a keyframe is redundant when more than cull_kf_redundant of its
     # points are seen by at least cull_kf_min_obs other keyframes at the same or a finer
     # scale (octave at most one level above).
@@ -495,3 +502,84 @@ class SystemConfig:
 
     local_mapping: bool = True  # run the local mapper on every new keyframe
     progress: bool = True  # show a progress bar with fps and the tracking state
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopClosingConfig:
+    """Loop detection and Sim(3) loop correction (ORB-SLAM, Mur-Artal, Montiel & Tardos, T-RO
+    2015, Sec. VII; LoopClosing.cc / ORBmatcher.cc / Optimizer.cc of ORB-SLAM2, whose values
+    are the defaults here)."""
+
+    # False: keyframes are only indexed in the keyframe database (for relocalisation).
+    enabled: bool = True
+    # No detection until this many keyframes exist after the map's start or the last loop.
+    min_keyframes_between: int = 10
+    # A candidate group must be consistent with the groups of this many previous keyframes.
+    consistency_threshold: int = 3
+    # SearchByBoW between the keyframe and a candidate: ratio, and matches needed.
+    bow_ratio: float = 0.75
+    min_bow_matches: int = 20
+    # Sim3Solver RANSAC (0.99, 20 inliers, 300 iterations); fix_scale only for stereo/RGB-D.
+    sim3_probability: float = 0.99
+    sim3_min_inliers: int = 20
+    sim3_max_iterations: int = 300
+    fix_scale: bool = False
+    seed: int = 0  # RANSAC sample seed (reproducible runs)
+    # Guided matching with the RANSAC similarity (SearchBySim3): window x level scale.
+    sim3_search_window: float = 7.5
+    # Sim(3) refinement (OptimizeSim3): Huber / outlier chi2 gate, iterations before and
+    # after removing outliers (the second run is 10 when some were removed), inliers needed.
+    sim3_opt_chi2: float = 10.0
+    sim3_opt_iterations: int = 5
+    sim3_opt_more_iterations: int = 10
+    sim3_opt_min_inliers: int = 20
+    # Sigma (log scale) of a prior holding the refined scale near the closed-form one; not in
+    # ORB-SLAM: with a short baseline the reprojection errors leave the scale free (0: off).
+    sim3_scale_prior_sigma: float = 0.05
+    # Loop-side points projected into the keyframe with the similarity: window x level
+    # scale, and matches needed in total to accept the loop.
+    projection_window: float = 10.0
+    min_total_matches: int = 40
+    # Loop fusion window (SearchAndFuse) x level scale.
+    fuse_window: float = 4.0
+    # Points are searched when seen within acos(this) of their mean viewing direction.
+    min_view_cos: float = 0.5
+    # Global BA after the essential-graph optimisation (ORB-SLAM2 runs it in a thread),
+    # its iterations and wall-time bound in seconds (0: none).
+    global_ba: bool = True
+    global_ba_iterations: int = 10
+    global_ba_time_budget_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.consistency_threshold < 0 or self.min_keyframes_between < 0:
+            raise ConfigError("loop_closing: consistency_threshold and min_keyframes_between must be >= 0")
+        if not 0.0 < self.bow_ratio <= 1.0 or not 0.0 < self.sim3_probability < 1.0:
+            raise ConfigError("loop_closing: bow_ratio must be in (0, 1] and sim3_probability in (0, 1)")
+
+
+@dataclasses.dataclass(frozen=True)
+class RelocalizationConfig:
+    """Relocalisation of a lost frame (ORB-SLAM, T-RO 2015, Sec. V-C; Tracking::Relocalization
+    of ORB-SLAM2: BoW candidates, EPnP in RANSAC, pose refinement, guided search)."""
+
+    bow_ratio: float = 0.75  # SearchByBoW ratio between a candidate keyframe and the frame
+    min_bow_matches: int = 15  # candidates with fewer matches are skipped
+    # PnPsolver::SetRansacParameters(0.99, 10, 300, 4, 0.5, 5.991).
+    pnp_probability: float = 0.99
+    pnp_min_inliers: int = 10
+    pnp_max_iterations: int = 300
+    pnp_min_set: int = 4
+    pnp_epsilon: float = 0.5
+    pnp_chi2: float = 5.991
+    seed: int = 0  # RANSAC sample seed
+    # Pose-only refinement must keep this many inliers to go on with a candidate.
+    min_pose_inliers: int = 10
+    # Guided search of the candidate's points when the pose has fewer than min_inliers:
+    # window x level scale and largest Hamming distance, first wide, then narrow (applied
+    # when the refined pose has more than narrow_min_inliers inliers).
+    wide_window: float = 10.0
+    wide_max_dist: int = 100
+    narrow_window: float = 3.0
+    narrow_max_dist: int = 64
+    narrow_min_inliers: int = 30
+    min_inliers: int = 50  # inliers to accept the relocalisation

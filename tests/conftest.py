@@ -22,3 +22,16 @@ def euroc_sample() -> Path:
     if not EUROC_SAMPLE.is_dir():
         pytest.skip(f"real EuRoC sample not found at {EUROC_SAMPLE}")
     return EUROC_SAMPLE
+
+
+@pytest.fixture(scope="session")
+def synth_replay_100(tmp_path_factory) -> Path:
+    """The first 100 frames of the real fr3 long-office camera path replayed in a synthetic
+    room (rendered once per test session)."""
+    from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+
+    gt = TUM_SAMPLE / "groundtruth.txt"
+    if not gt.is_file():
+        pytest.skip(f"ground truth to replay not found at {gt}")
+    out = tmp_path_factory.mktemp("synth_replay_100")
+    return render_sequence(out, SynthOptions(trajectory="replay", gt=str(gt), frames=100), progress=False)

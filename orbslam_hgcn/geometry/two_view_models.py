@@ -149,7 +149,6 @@ def _robust_gauss_newton(
     Jacobian of one step is a single batched call. Returns the (P,) solution.
     """
     x = np.asarray(x0, dtype=np.float64).copy()
-    p = len(x)
     lam = 1e-3
 
     def cost(r: np.ndarray) -> float:

@@ -93,10 +93,16 @@ def _window(m: Map, free: list[int], fixed_extra: bool) -> BAWindow:
     )
 
 
-def local_window(m: Map, kf_id: int) -> BAWindow:
-    """The local BA problem around keyframe ``kf_id`` (it and its covisible keyframes free)."""
+def local_window(m: Map, kf_id: int, max_free: int | None = None) -> BAWindow:
+    """The local BA problem around keyframe ``kf_id`` (it and its covisible keyframes free).
+
+    max_free: at most this many free keyframes (the keyframe and its best covisible ones);
+    the other covisible keyframes are then fixed like the rest. None: all are free.
+    """
     with m.lock:
         free = [kf_id] + [int(k) for k in m.covisible_keyframes(kf_id) if not m.keyframe(int(k)).bad]
+        if max_free is not None and max_free > 0:
+            free = free[:max_free]
         return _window(m, free, fixed_extra=True)
 
 

@@ -1,0 +1,137 @@
+"""Quantisation speed: one frame of 1000 ORB descriptors against ~10k words.
+
+Queries: ORB-SLAM descriptors (1000 per frame) of the real TUM and EuRoC sample frames.
+Vocabularies timed:
+
+* ORB tree, k = 10, L = 4 (10^4 leaves at most), trained here on the same descriptors
+  used to train the HGCN vocabularies (see --train);
+* HGCN vocabulary layout with 10 000 words: PCA 256 -> 20, IVF search over the word
+  centroids (4 sqrt(W) lists, nprobe lists probed) and the exact flat search for
+  comparison. Its centroids are k-means centres of the PCA-projected training
+  descriptors: the search cost depends on the number and layout of the centroids, not on
+  how they were learned, and a full 10k-word HGCN training takes minutes;
+* the shipped default vocabularies, when present.
+
+Printed per vocabulary: median CPU milliseconds (and wall milliseconds) over ``--runs``
+frames for ``transform_words`` (descriptors -> word ids) and ``transform`` (BoW +
+FeatureVector), with one thread, and the IVF search's agreement with the exact nearest
+centroid. CPU time is reported first because the machines this runs on are shared: wall
+time there includes waiting for a core.
+
+    OMP_NUM_THREADS=1 python bench/bench_vocab_quantise.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import faiss
+import numpy as np
+
+from orbslam_hgcn.features.orb import ORBExtractor
+from orbslam_hgcn.vocabulary import load_vocabulary
+from orbslam_hgcn.vocabulary.base import DEFAULT_FILES, VocabularyMetadata
+from orbslam_hgcn.vocabulary.graph import fit_pca
+from orbslam_hgcn.vocabulary.hgcn_vocab import HGCNVocabulary, kmeans, nearest
+from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
+
+
+def query_frames() -> list[np.ndarray]:
+    files = sorted((SHARED / "tum_fr3_long_office_household_sample" / "rgb").glob("*.png"))
+    files += sorted((SHARED / "euroc_V1_01_easy_first95" / "mav0" / "cam0" / "data").glob("*.png"))[::5]
+    ex = ORBExtractor()
+    frames = [ex.extract(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)).desc for f in files]
+    return [f[:1000] for f in frames if len(f) >= 1000]
+
+
+def timeit(fn, frames: list[np.ndarray], runs: int) -> tuple[float, float]:
+    """Median CPU and wall milliseconds of fn over ``runs`` frames.
+
+    CPU time (``time.process_time``, all threads of this process) is what the call costs
+    on an idle machine; wall time also counts waiting for the CPU on a shared machine.
+    """
+    for f in frames[:3]:
+        fn(f)
+    cpu, wall = [], []
+    for r in range(runs):
+        f = frames[r % len(frames)]
+        c, t = time.process_time(), time.perf_counter()
+        fn(f)
+        cpu.append(time.process_time() - c)
+        wall.append(time.perf_counter() - t)
+    return 1e3 * float(np.median(cpu)), 1e3 * float(np.median(wall))
+
+
+def hgcn_layout(desc: np.ndarray, words: int) -> tuple[HGCNVocabulary, HGCNVocabulary]:
+    """Two vocabularies with the same k-means centroids: IVF search and exact flat search."""
+    pca = fit_pca(desc, 20)
+    x = pca.transform(desc)
+    cent = kmeans(x, words, 10, 0, points_per_centroid=20)
+    coarse = kmeans(cent, 100, 20, 0)
+    ivf = kmeans(cent, int(4 * np.sqrt(words)), 20, 1)
+    meta = VocabularyMetadata("hgcn", words, "binary", 32, trained_on="k-means centres (timing only)")
+    wc = nearest(cent, coarse).astype(np.int32)
+    idf = np.ones(words, np.float32)
+    return (HGCNVocabulary(pca, cent, coarse, wc, ivf, 4, idf, meta),
+            HGCNVocabulary(pca, cent, coarse, wc, np.zeros((0, 20), np.float32), 0, idf, meta))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--train", type=Path, default=None,
+                    help="descriptor cache (.npz with 'desc') to train the timing vocabularies on; "
+                         "default: the query frames' own descriptors")
+    ap.add_argument("--words", type=int, default=10000)
+    ap.add_argument("--runs", type=int, default=300)
+    ap.add_argument("--threads", type=int, default=1, help="faiss threads")
+    args = ap.parse_args(argv)
+    faiss.omp_set_num_threads(args.threads)
+    frames = query_frames()
+    if args.train is not None:
+        with np.load(args.train) as z:
+            train = z["desc"]
+        src = str(args.train)
+    else:
+        train, src = np.concatenate(frames), "the query frames"
+    rng = np.random.default_rng(0)
+    if len(train) > 300_000:
+        train = train[np.sort(rng.choice(len(train), 300_000, replace=False))]
+    print(f"queries: {len(frames)} real frames x 1000 ORB descriptors (TUM fr3 + EuRoC samples); "
+          f"timing vocabularies trained on {len(train)} descriptors of {src}; {args.threads} faiss thread(s); "
+          f"{args.runs} runs each")
+    tree = train_tree_vocabulary(train, np.arange(len(train)) // 1000, k=10, levels=4, progress=False)
+    ivf, flat = hgcn_layout(train, args.words)
+    exact = np.concatenate([flat.transform_words(f) for f in frames])
+    rows = [(f"orb tree k=10 L=4 ({tree.n_words} words)", tree, None)]
+    for nprobe in (1, 2, 4, 8):
+        rows.append((f"hgcn layout, {args.words} words, IVF nprobe={nprobe}", ivf, nprobe))
+    rows.append((f"hgcn layout, {args.words} words, exact flat", flat, None))
+    for kind, path in DEFAULT_FILES.items():
+        if path.is_file():
+            v = load_vocabulary(path)
+            rows.append((f"shipped {kind} ({v.n_words} words)", v, None))
+    print("milliseconds per frame of 1000 descriptors, median CPU time (wall time)")
+    print(f"{'vocabulary':46s} {'transform_words':>17s} {'transform (BoW+FV)':>19s} {'= exact':>8s}")
+    for name, v, nprobe in rows:
+        agree = ""
+        if nprobe is not None:
+            v.nprobe = nprobe
+            got = np.concatenate([v.transform_words(f) for f in frames])
+            agree = f"{100 * np.mean(got == exact):6.1f}%"
+        w_cpu, w_wall = timeit(v.transform_words, frames, args.runs)
+        t_cpu, t_wall = timeit(v.transform, frames, args.runs)
+        print(f"{name:46s} {w_cpu:8.2f} ({w_wall:6.2f}) {t_cpu:10.2f} ({t_wall:6.2f}) {agree:>8s}")
+    p_cpu, p_wall = timeit(ivf.project, frames, args.runs)
+    print(f"(PCA projection alone: {p_cpu:.2f} ms CPU ({p_wall:.2f} ms wall) per 1000 descriptors)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

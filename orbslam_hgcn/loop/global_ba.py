@@ -1,0 +1,93 @@
+"""Global bundle adjustment after a loop correction, and the propagation of its result to
+keyframes and points created while it ran (ORB-SLAM2 LoopClosing::RunGlobalBundleAdjustment;
+Mur-Artal & Tardos, T-RO 2017).
+
+The problem is cut from the map (every good keyframe and point, the origin keyframe fixed)
+and solved with gtsam without holding the map lock. Writing back, the keyframes of the
+problem take their optimised pose; a keyframe added meanwhile follows its spanning-tree
+parent (its pose relative to the parent is kept), and a point added meanwhile follows its
+reference keyframe (its position in that camera is kept).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from orbslam_hgcn.backend.bundle_adjustment import global_bundle_adjustment
+from orbslam_hgcn.config import BackendConfig
+from orbslam_hgcn.map import Map
+from orbslam_hgcn.map.window import apply_window, global_window
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class GlobalBAResult:
+    """Keyframes and points optimised, and those propagated (created during the BA)."""
+
+    n_keyframes: int = 0
+    n_points: int = 0
+    n_keyframes_propagated: int = 0
+    n_points_propagated: int = 0
+
+
+def run_global_ba(
+    m: Map,
+    iterations: int = 10,
+    backend: BackendConfig | None = None,
+    time_budget_s: float = 0.0,
+    should_stop: Callable[[], bool] | None = None,
+) -> GlobalBAResult:
+    """Global BA of the whole map (bounded by ``iterations`` and ``time_budget_s``)."""
+    cfg = dataclasses.replace(backend or BackendConfig(), ba_time_budget_s=time_budget_s)
+    with m.lock:
+        w = global_window(m)
+    if w.n_observations == 0 or not (~w.fixed).any():
+        return GlobalBAResult()
+    res = global_bundle_adjustment(
+        w.T_cw, w.fixed, w.points, w.obs_kf, w.obs_pt, w.uv, w.inv_sigma2, w.K,
+        iterations=iterations, config=cfg, should_stop=should_stop,
+    )  # fmt: skip
+    out = GlobalBAResult(len(w.kf_ids), len(w.point_ids))
+    with m.lock:
+        in_window = set(w.kf_ids.tolist())
+        before = {kf.id: kf.T_cw.copy() for kf in m.keyframes()}
+        apply_window(m, w, res.T_cw, res.points)
+        # Keyframes added during the BA: follow their parent, root first.
+        new_T: dict[int, np.ndarray] = {k: m.keyframe(k).T_cw.copy() for k in in_window if not m.keyframe(k).bad}
+        stack = [m.origin_id] if m.origin_id in new_T else []
+        while stack:
+            k = stack.pop()
+            for c in sorted(m.keyframe(k).children):
+                child = m.keyframe(c)
+                if child.bad:
+                    continue
+                if c not in new_T:
+                    T_cp = before[c] @ np.linalg.inv(before[k])
+                    new_T[c] = T_cp @ new_T[k]
+                    m.set_keyframe_pose(c, new_T[c])
+                    out.n_keyframes_propagated += 1
+                stack.append(c)
+        # Points added during the BA: follow their reference keyframe (whose pose is now
+        # the optimised or propagated one).
+        pids = m.point_ids()
+        moved = []
+        for p in pids[~np.isin(pids, w.point_ids)].tolist():
+            r = m.point(p).ref_kf
+            if r not in before or m.keyframe(r).bad:
+                continue
+            M = m.keyframe(r).T_wc @ before[r]
+            X = m.positions(np.array([p]))[0]
+            m.set_point_positions(np.array([p]), (M[:3, :3] @ X + M[:3, 3])[None])
+            moved.append(p)
+        if moved:
+            m.update_points(np.array(moved, dtype=np.int64), descriptors=False)
+        out.n_points_propagated = len(moved)
+    log.info("global BA: %d keyframes, %d points; propagated to %d keyframes, %d points created meanwhile",
+             out.n_keyframes, out.n_points, out.n_keyframes_propagated, out.n_points_propagated)  # fmt: skip
+    return out

@@ -1,0 +1,157 @@
+"""The local mapper: one entry, :meth:`LocalMapper.process`, per new keyframe.
+
+ORB-SLAM's local mapping thread as a plain class (Mur-Artal, Montiel & Tardos, T-RO 2015,
+Sec. VI; LocalMapping::Run of ORB-SLAM2), in its order:
+
+1. keyframe insertion: BoW vector (with a vocabulary), descriptors and viewing ranges of
+   the points the tracker linked, covisibility and spanning-tree links; points created
+   with the keyframe enter the recent list;
+2. recent map point culling (:mod:`orbslam_hgcn.mapping.culling`);
+3. new points by triangulation (:mod:`orbslam_hgcn.mapping.triangulate`);
+4. duplicate fusion with the neighbourhood (:mod:`orbslam_hgcn.mapping.fuse`);
+5. local bundle adjustment (gtsam, via :mod:`orbslam_hgcn.backend`): the keyframe and its
+   covisible keyframes free, every other keyframe seeing their points fixed, Huber
+   kernel, 5 iterations, outliers out, 10 more, wall time bounded;
+6. redundant keyframe culling.
+
+Stage timings of every call are kept in :attr:`LocalMapper.timings` (milliseconds).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from typing import Any
+
+import numpy as np
+
+from orbslam_hgcn.backend.bundle_adjustment import local_bundle_adjustment
+from orbslam_hgcn.config import BackendConfig, LocalMappingConfig
+from orbslam_hgcn.map import KeyFrame, Map
+from orbslam_hgcn.map.window import apply_window, local_window
+from orbslam_hgcn.mapping.culling import cull_recent_points, redundant_keyframes
+from orbslam_hgcn.mapping.fuse import search_in_neighbors
+from orbslam_hgcn.mapping.triangulate import create_new_points
+
+log = logging.getLogger(__name__)
+
+
+class LocalMapper:
+    """Local mapping over one :class:`Map`.
+
+    vocabulary: optional (``transform(desc) -> (BowVector, FeatureVector)``); keyframes
+    then get BoW vectors and triangulation matches features under one vocabulary node.
+    """
+
+    def __init__(
+        self,
+        m: Map,
+        config: LocalMappingConfig | None = None,
+        backend: BackendConfig | None = None,
+        vocabulary: Any = None,
+    ) -> None:
+        self.config = config or LocalMappingConfig()
+        self.backend = backend or BackendConfig()
+        self.vocabulary = vocabulary
+        self.timings: dict[str, list[float]] = defaultdict(list)
+        self.counts: dict[str, int] = defaultdict(int)
+        self.reset(m)
+
+    def reset(self, m: Map) -> None:
+        """Work on map ``m`` from now on, forgetting the recent points."""
+        self.map = m
+        self.recent = np.zeros(0, dtype=np.int64)
+
+    def process(self, kf: KeyFrame) -> KeyFrame | None:
+        """Run every local mapping step for a new keyframe; returns it for the loop closer,
+        or None when it was culled meanwhile."""
+        t_all, c_all = time.perf_counter(), time.process_time()
+        m, cfg = self.map, self.config
+        with self._timed("insert"):
+            self._insert(kf)
+        with self._timed("cull_points"):
+            self.recent, n_cull = cull_recent_points(m, self.recent, kf.id, cfg)
+        with self._timed("triangulate"):
+            new = create_new_points(m, kf, cfg)
+            self.recent = np.concatenate([self.recent, new])
+        with self._timed("fuse"):
+            fused = search_in_neighbors(m, kf, cfg)
+        ba_ms = ba_cpu_ms = 0.0
+        if cfg.local_ba and m.n_keyframes() > 2 and not kf.bad:
+            t, c = time.perf_counter(), time.process_time()
+            self._local_ba(kf)
+            ba_ms = 1000.0 * (time.perf_counter() - t)
+            ba_cpu_ms = 1000.0 * (time.process_time() - c)
+        self.timings["local_ba"].append(ba_ms)
+        self.timings["local_ba_cpu"].append(ba_cpu_ms)
+        culled: list[int] = []
+        if cfg.keyframe_culling and not kf.bad:
+            with self._timed("cull_keyframes"):
+                culled = redundant_keyframes(m, kf, cfg)
+        self.timings["total"].append(1000.0 * (time.perf_counter() - t_all))
+        self.timings["total_cpu"].append(1000.0 * (time.process_time() - c_all))
+        self.counts["keyframes"] += 1
+        self.counts["points_created"] += len(new)
+        self.counts["points_culled"] += n_cull
+        self.counts["points_merged"] += fused["merged"]
+        self.counts["keyframes_culled"] += len(culled)
+        log.debug(
+            "keyframe %d: %d new points, %d culled, %d merged, %d keyframes culled, BA %.0f ms",
+            kf.id, len(new), n_cull, fused["merged"], len(culled), ba_ms,
+        )  # fmt: skip
+        return None if kf.bad else kf
+
+    # --- steps ---------------------------------------------------------------------------
+    def _insert(self, kf: KeyFrame) -> None:
+        """ORB-SLAM2 ProcessNewKeyFrame for a keyframe whose observations are linked."""
+        m = self.map
+        if self.vocabulary is not None and kf.featvec is None:
+            kf.bow, kf.featvec = self.vocabulary.transform(kf.keypoints.desc)
+        _, pids = kf.observed_points()
+        m.update_points(pids)
+        # Points created with this keyframe (the initial map) are on probation like
+        # triangulated ones.
+        if len(pids):
+            first = np.array([m.point(int(p)).first_kf for p in pids], dtype=np.int64)
+            self.recent = np.concatenate([self.recent, pids[first == kf.id]])
+        m.update_connections(kf.id)
+
+    def _local_ba(self, kf: KeyFrame) -> None:
+        m = self.map
+        with m.lock:
+            w = local_window(m, kf.id, self.config.ba_max_keyframes or None)
+        if w.n_observations == 0 or not (~w.fixed).any():
+            return
+        budget = self.config.ba_cpu_budget_s
+        deadline = time.thread_time() + budget
+
+        def over_budget() -> bool:
+            return budget > 0 and time.thread_time() > deadline
+
+        res = local_bundle_adjustment(
+            w.T_cw, w.fixed, w.points, w.obs_kf, w.obs_pt, w.uv, w.inv_sigma2, w.K, self.backend,
+            should_stop=over_budget,
+        )  # fmt: skip
+        self.counts["ba_budget_hit"] += int(over_budget())
+        erased = apply_window(m, w, res.T_cw, res.points, res.outlier)
+        self.counts["ba_outliers_erased"] += erased
+        self.counts["ba_keyframes_free"] += int((~w.fixed).sum())
+
+    # --- timing --------------------------------------------------------------------------
+    def _timed(self, name: str) -> _Timer:
+        return _Timer(self.timings[name])
+
+
+class _Timer:
+    """Context manager appending the elapsed milliseconds to a list."""
+
+    def __init__(self, sink: list[float]) -> None:
+        self.sink = sink
+
+    def __enter__(self) -> _Timer:
+        self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.sink.append(1000.0 * (time.perf_counter() - self.t0))

@@ -1,0 +1,94 @@
+"""What a run leaves behind: trajectories rebuilt from the map, timing statistics, files.
+
+The camera trajectory is rebuilt as ORB-SLAM2's System::SaveTrajectoryTUM does: every
+tracked frame stored its pose relative to its reference keyframe, ``T_cr``; at the end its
+pose is ``T_cw = T_cr @ T_rw`` with the reference keyframe's optimised pose. A reference
+keyframe culled meanwhile is replaced by its spanning-tree parent through the relative pose
+it kept (``T_cp``). Frames without a pose (before initialisation, lost, or tracked in a
+map discarded by a reset) are left out of the file and counted.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from orbslam_hgcn.geometry.se3 import inv_T
+from orbslam_hgcn.map import Map
+from orbslam_hgcn.tracking.frame_ops import pose_from_reference
+from orbslam_hgcn.tracking.tracker import PoseRecord, TrackingState
+from orbslam_hgcn.trajectory import Trajectory, write_tum
+
+log = logging.getLogger(__name__)
+
+
+def keyframe_trajectory(m: Map) -> Trajectory:
+    """T_wc of every good keyframe, in keyframe order."""
+    kfs = m.keyframes()
+    if not kfs:
+        return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+    return Trajectory(np.array([kf.timestamp for kf in kfs]), np.stack([kf.T_wc for kf in kfs]))
+
+
+def camera_trajectory(records: Iterable[PoseRecord], m: Map, generation: int) -> Trajectory:
+    """T_wc of every frame with a pose in the current map (see the module text)."""
+    stamps, poses = [], []
+    for rec in records:
+        if rec.generation != generation or rec.T_cr is None or rec.ref_kf_id < 0:
+            continue
+        T_cw = pose_from_reference(m, rec.ref_kf_id, rec.T_cr)
+        if T_cw is None:
+            log.warning("frame %d: reference keyframe chain ends at a culled keyframe; pose left out", rec.frame_id)
+            continue
+        stamps.append(rec.timestamp)
+        poses.append(inv_T(T_cw))
+    if not stamps:
+        return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+    order = np.argsort(stamps, kind="stable")
+    return Trajectory(np.asarray(stamps)[order], np.stack(poses)[order])
+
+
+def frame_counts(records: list[PoseRecord], generation: int) -> dict[str, int]:
+    """Frames by outcome: tracked (with a pose in the current map), lost, not initialised,
+    discarded by a map reset."""
+    tracked = sum(r.generation == generation and r.T_cr is not None for r in records)
+    lost = sum(r.generation == generation and r.state == TrackingState.LOST for r in records)
+    not_init = sum(
+        r.generation == generation and r.T_cr is None and r.state == TrackingState.NOT_INITIALIZED for r in records
+    )
+    reset = sum(r.generation != generation for r in records)
+    return {"frames": len(records), "tracked": tracked, "lost": lost, "not_initialized": not_init, "reset": reset}
+
+
+def summary_ms(values: list[float] | np.ndarray) -> dict[str, float]:
+    """Median, 95th percentile, mean and max of timings in ms (zeros when empty)."""
+    v = np.asarray(values, dtype=np.float64)
+    if len(v) == 0:
+        return {"count": 0, "median": 0.0, "p95": 0.0, "mean": 0.0, "max": 0.0}
+    return {
+        "count": int(len(v)),
+        "median": float(np.median(v)),
+        "p95": float(np.percentile(v, 95)),
+        "mean": float(v.mean()),
+        "max": float(v.max()),
+    }
+
+
+def write_outputs(out: str | Path, kf_traj: Trajectory, cam_traj: Trajectory, stats: dict[str, Any]) -> dict[str, Path]:
+    """Write KeyFrameTrajectory.txt, CameraTrajectory.txt (TUM, T_wc) and stats.json."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {
+        "keyframes": out / "KeyFrameTrajectory.txt",
+        "camera": out / "CameraTrajectory.txt",
+        "stats": out / "stats.json",
+    }
+    write_tum(paths["keyframes"], kf_traj)
+    write_tum(paths["camera"], cam_traj)
+    paths["stats"].write_text(json.dumps(stats, indent=2, sort_keys=False) + "\n", encoding="utf-8")
+    return paths

@@ -1,0 +1,175 @@
+"""Run the system over a dataset and write its results: the ``orbslam-hgcn run`` command.
+
+Writes into the output folder ``KeyFrameTrajectory.txt`` and ``CameraTrajectory.txt``
+(TUM format, ``T_wc``, as ORB-SLAM writes them) and ``stats.json`` (frame counts, tracking
+events, per-stage timings and, when the dataset has ground truth, the ATE after Sim(3)
+alignment, Umeyama 1991, as monocular scale is unobservable).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+from orbslam_hgcn.config import CONFIG_DIR, load_camera, load_yaml
+from orbslam_hgcn.datasets import open_sequence
+from orbslam_hgcn.errors import OrbslamError, VocabularyError
+from orbslam_hgcn.geometry.camera import PinholeCamera
+from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
+
+CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
+
+
+@dataclass
+class RunReport:
+    """What a run produced: output files, stats, ATE figures (None without ground truth)."""
+
+    paths: dict[str, Path]
+    stats: dict[str, Any]
+    ate: dict[str, Any] = field(default_factory=dict)
+    interrupted: bool = False
+
+
+def camera_from_config(path: str | Path | None) -> PinholeCamera | None:
+    """The camera of a config file when it holds one (flat keys or a ``camera:`` section)."""
+    if path is None:
+        return None
+    data = load_yaml(path)
+    section = data.get("camera") if isinstance(data.get("camera"), dict) else data
+    if any(k in section for k in CAMERA_KEYS):
+        return load_camera(path)
+    return None
+
+
+def trajectory_ate(gt: Trajectory, est: Trajectory) -> dict[str, Any]:
+    """ATE of ``est`` after Sim(3) alignment: rmse/mean/median/max (m), pairs, scale; or
+    {"error": reason} when it cannot be computed."""
+    from orbslam_hgcn.evaluation.ate import evaluate
+
+    if len(est) < 3:
+        return {"error": f"only {len(est)} poses estimated"}
+    try:
+        r = evaluate(gt, est, align="sim3")
+    except OrbslamError as exc:
+        return {"error": str(exc)}
+    return {
+        "rmse_m": r.ate.rmse,
+        "mean_m": r.ate.mean,
+        "median_m": r.ate.median,
+        "max_m": r.ate.max,
+        "pairs": r.num_pairs,
+        "scale": r.scale,
+    }
+
+
+def open_vocabulary(vocab: str | None, loop_closing: bool) -> Any:
+    """The vocabulary of a run: ``vocab`` is ``orb``, ``hgcn`` (the shipped defaults), a
+    vocabulary file, or ``none``; None means the default HGCN one. Without loop closing a
+    missing default only costs relocalisation (a warning); otherwise it is an error."""
+    from orbslam_hgcn.vocabulary import load_vocabulary
+
+    name = vocab or "hgcn"
+    if name == "none":
+        if loop_closing:
+            raise OrbslamError("loop closing needs a vocabulary: use --vocab orb|hgcn|FILE, or --no-loop")
+        return None
+    try:
+        return load_vocabulary(name)
+    except VocabularyError as exc:
+        if vocab is None and not loop_closing:
+            log.warning("%s; running without a vocabulary (no relocalisation)", exc)
+            return None
+        raise
+
+
+def run_dataset(
+    path: str | Path,
+    out: str | Path,
+    kind: str | None = None,
+    config: str | Path | None = None,
+    max_frames: int | None = None,
+    loop_closing: bool = False,
+    progress: bool = True,
+    vocab: str | None = None,
+) -> RunReport:
+    """Open a dataset, run the sequential system over it, write the results into ``out``."""
+    if config is not None:
+        p = Path(config)
+        if not p.is_file() and not p.suffix and (CONFIG_DIR / f"{p.name}.yaml").is_file():
+            config = CONFIG_DIR / f"{p.name}.yaml"  # a shipped camera name such as tum_fr3
+    configs = Configs.from_yaml(config)
+    camera = camera_from_config(config)
+    sequence = open_sequence(kind, path, camera)
+    if max_frames is not None and max_frames < 1:
+        raise OrbslamError(f"--max-frames must be at least 1, found {max_frames}")
+    vocabulary = open_vocabulary(vocab, loop_closing)
+    if not loop_closing:
+        configs = dataclasses.replace(configs, loop_closing=dataclasses.replace(configs.loop_closing, enabled=False))
+    system = System(sequence.camera, configs, vocabulary=vocabulary)
+    log.info("%s: %d frames, camera %s", sequence.name, len(sequence), sequence.camera.name)
+    with logging_redirect_tqdm():
+        summary = system.run(sequence, max_frames, progress=progress)
+    ate: dict[str, Any] = {}
+    if sequence.ground_truth is not None and len(sequence.ground_truth) >= 3:
+        ate = {
+            "keyframes": trajectory_ate(sequence.ground_truth, system.keyframe_trajectory()),
+            "camera": trajectory_ate(sequence.ground_truth, system.camera_trajectory()),
+        }
+    extra = {
+        "dataset": {"path": str(path), "kind": kind or "auto", "name": sequence.name, "frames": len(sequence)},
+        "vocabulary": repr(vocabulary) if vocabulary is not None else None,
+        "interrupted": summary.interrupted,
+        "wall_s": summary.wall_s,
+        "ate_sim3": ate,
+    }
+    paths = system.save(out, extra)
+    stats = system.stats()
+    stats.update(extra)
+    return RunReport(paths, stats, ate, summary.interrupted)
+
+
+def format_report(report: RunReport) -> list[str]:
+    """Human-readable summary lines of a run."""
+    s = report.stats
+    f = s["frames"]
+    t = s["timing_ms"]
+    lines = [
+        f"frames {f['frames']}: tracked {f['tracked']}, lost {f['lost']}, not initialised "
+        f"{f['not_initialized']}, discarded by map resets {f['reset']} ({s['map_resets']} resets)",
+        f"keyframes {s['keyframes']}, map points {s['map_points']}, final state: {s['final_state']}",
+        "tracking ms/frame: median {median:.1f}, p95 {p95:.1f}, mean {mean:.1f}".format(**t["tracking_per_frame"])
+        + " (CPU median {median:.1f})".format(**t["tracking_cpu_per_frame"]),
+        "local mapping ms/keyframe: median {median:.0f}, p95 {p95:.0f}, mean {mean:.0f}".format(
+            **t["local_mapping_per_keyframe"]
+        ),
+    ]
+    for ev in s.get("loop_closing", {}).get("loops", []):
+        lines.append(f"loop closed: keyframe {ev['kf_id']} (frame {ev['frame_id']}) with keyframe {ev['loop_kf_id']} "
+                     f"(frame {ev['loop_frame_id']}), scale {ev['scale']:.3f}, {ev['n_matches']} matched points")
+    reloc = s.get("relocalization", {})
+    if reloc.get("successes"):
+        lines.append(f"relocalised {reloc['successes']} times ({reloc['attempts']} attempts)")
+    if f["lost"]:
+        lines.append(f"WARNING: tracking was lost; {f['lost']} frames have no pose in CameraTrajectory.txt")
+    if f["tracked"] == 0:
+        lines.append("WARNING: the map was never initialised (too little parallax or texture); "
+                     "the trajectory files are empty")
+    for name, a in report.ate.items():
+        if "error" in a:
+            lines.append(f"ATE ({name}): not available: {a['error']}")
+        else:
+            lines.append(
+                f"ATE Sim(3) ({name}, {a['pairs']} poses): rmse {100 * a['rmse_m']:.2f} cm, "
+                f"median {100 * a['median_m']:.2f} cm, max {100 * a['max_m']:.2f} cm"
+            )
+    if report.interrupted:
+        lines.append("interrupted: results cover the frames processed so far")
+    return lines

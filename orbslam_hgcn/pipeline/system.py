@@ -1,0 +1,255 @@
+"""The SLAM system run in order: extraction, tracking, local mapping, one frame at a time.
+
+:class:`System` is the only place that knows every stage. In this sequential mode a
+keyframe made by the tracker is processed by the local mapper before the next frame, so
+local mapping is always idle when the tracker asks. The stages meet only here: the tracker
+returns its new keyframes, :meth:`System._on_keyframe` hands each to the local mapper and
+then to the loop closer, if one is plugged in (any object with ``process(keyframe)``);
+running a stage in a :class:`~orbslam_hgcn.pipeline.worker.Worker` replaces that call by a
+``submit``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from orbslam_hgcn.config import (
+    BackendConfig,
+    InitializerConfig,
+    LocalMappingConfig,
+    LoopClosingConfig,
+    MapConfig,
+    ORBConfig,
+    RelocalizationConfig,
+    SystemConfig,
+    TrackingConfig,
+    load_yaml,
+    section_from_yaml,
+)
+from orbslam_hgcn.datasets import Sequence
+from orbslam_hgcn.features.orb import ORBExtractor
+from orbslam_hgcn.geometry.camera import PinholeCamera
+from orbslam_hgcn.loop.closer import LoopCloser
+from orbslam_hgcn.map import Frame, KeyFrame, Map
+from orbslam_hgcn.mapping.local_mapper import LocalMapper
+from orbslam_hgcn.pipeline.results import (
+    camera_trajectory,
+    frame_counts,
+    keyframe_trajectory,
+    summary_ms,
+    write_outputs,
+)
+from orbslam_hgcn.tracking.relocalization import Relocalizer
+from orbslam_hgcn.tracking.tracker import Tracker, TrackingState, TrackResult
+from orbslam_hgcn.trajectory import Trajectory
+from orbslam_hgcn.vocabulary.database import KeyframeDatabase
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Configs:
+    """Every stage's configuration (YAML sections: orb, initializer, tracking,
+    local_mapping, backend, map, system, loop_closing, relocalization)."""
+
+    orb: ORBConfig = field(default_factory=ORBConfig)
+    initializer: InitializerConfig = field(default_factory=InitializerConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    local_mapping: LocalMappingConfig = field(default_factory=LocalMappingConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+    system: SystemConfig = field(default_factory=SystemConfig)
+    loop_closing: LoopClosingConfig = field(default_factory=LoopClosingConfig)
+    relocalization: RelocalizationConfig = field(default_factory=RelocalizationConfig)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path | None) -> Configs:
+        """Defaults, overridden by the sections present in the YAML file ``path``."""
+        if path is None:
+            return cls()
+        data = load_yaml(path)
+        defaults = cls()
+        kw = {
+            f.name: section_from_yaml(type(getattr(defaults, f.name)), data, path, f.name)
+            for f in dataclasses.fields(cls)
+        }
+        return cls(**kw)
+
+
+@dataclass
+class RunSummary:
+    """Outcome of :meth:`System.run`: frames seen, whether it was interrupted."""
+
+    frames: int
+    interrupted: bool
+    wall_s: float
+
+
+class System:
+    """Monocular SLAM over one camera; stages run in order on the calling thread."""
+
+    def __init__(
+        self,
+        camera: PinholeCamera,
+        configs: Configs | None = None,
+        vocabulary: Any = None,
+        loop_closer: Any = None,
+        relocalizer: Any = None,
+    ) -> None:
+        self.camera = camera
+        self.configs = c = configs or Configs()
+        self.vocabulary = vocabulary
+        self.loop_closer = loop_closer
+        self.relocalizer = relocalizer
+        self.map = Map(c.map)
+        self.extractor = ORBExtractor(c.orb)
+        n_init = max(1, int(round(c.orb.n_features * c.tracking.init_features_factor)))
+        self.init_extractor = ORBExtractor(dataclasses.replace(c.orb, n_features=n_init))
+        # With a vocabulary, keyframes go into one keyframe database that relocalisation and
+        # loop closing share; the loop closer indexes them (and closes loops when
+        # loop_closing.enabled).
+        self.database: KeyframeDatabase | None = None
+        if vocabulary is not None:
+            self.database = KeyframeDatabase()
+            if relocalizer is None:
+                self.relocalizer = Relocalizer(self.map, self.database, c.relocalization, c.backend, vocabulary)
+            if loop_closer is None:
+                self.loop_closer = LoopCloser(self.map, self.database, c.loop_closing, c.backend, vocabulary)
+        self.tracker = Tracker(
+            self.map, c.tracking, c.initializer, c.backend, vocabulary=vocabulary, mapping_idle=self._mapping_idle,
+            relocalizer=self.relocalizer,
+        )
+        self.mapper = LocalMapper(self.map, c.local_mapping, c.backend, vocabulary=vocabulary)
+        self.timings: dict[str, list[float]] = {"extraction": [], "tracking": [], "tracking_cpu": [], "frame": []}
+        self.events: list[dict[str, Any]] = []
+        self.n_resets = 0
+
+    # --- one frame -----------------------------------------------------------------------
+    def _mapping_idle(self) -> bool:
+        return True  # sequential: the mapper finished the previous keyframe already
+
+    def process(self, image: np.ndarray, timestamp: float, frame_id: int) -> TrackResult:
+        """Extract, track and map one image ((H, W) uint8 gray or (H, W, 3) BGR)."""
+        t0 = time.perf_counter()
+        if not self.tracker.can_recover:
+            return self.tracker.skip(frame_id, timestamp)
+        if image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        initializing = self.tracker.state == TrackingState.NOT_INITIALIZED
+        kps = (self.init_extractor if initializing else self.extractor).extract(image, self.camera)
+        t1 = time.perf_counter()
+        result = self.tracker.track(Frame(frame_id, timestamp, self.camera, kps))
+        self.timings["extraction"].append(1000.0 * (t1 - t0))
+        if result.state == TrackingState.OK and not result.initialized:
+            self.timings["tracking"].append(result.time_ms)
+            self.timings["tracking_cpu"].append(result.cpu_ms)
+        if result.reset:
+            self._reset(frame_id, timestamp)
+        if result.initialized:
+            self.events.append({"frame": frame_id, "t": timestamp, "event": "initialized"})
+        if result.lost:
+            self.events.append({"frame": frame_id, "t": timestamp, "event": "lost"})
+        for kf in result.new_keyframes:
+            self._on_keyframe(kf)
+        self.timings["frame"].append(1000.0 * (time.perf_counter() - t0))
+        return result
+
+    def _on_keyframe(self, kf: KeyFrame) -> None:
+        if not self.configs.system.local_mapping:
+            self.map.update_points(kf.observed_points()[1])
+            self.map.update_connections(kf.id)
+            return
+        out = self.mapper.process(kf)
+        if out is not None and self.loop_closer is not None:
+            self.loop_closer.process(out)
+
+    def _reset(self, frame_id: int, timestamp: float) -> None:
+        self.n_resets += 1
+        self.map = self.tracker.map
+        self.mapper.reset(self.map)
+        for stage in (self.loop_closer, self.relocalizer):
+            if stage is not None and hasattr(stage, "reset"):
+                stage.reset(self.map)
+        self.events.append({"frame": frame_id, "t": timestamp, "event": "reset"})
+
+    # --- a whole sequence ----------------------------------------------------------------
+    def run(self, sequence: Sequence, max_frames: int | None = None, progress: bool | None = None) -> RunSummary:
+        """Process the frames of ``sequence`` in order. Ctrl-C stops after the current
+        step; what exists is kept (``RunSummary.interrupted``)."""
+        n = len(sequence) if max_frames is None else min(len(sequence), max_frames)
+        show = self.configs.system.progress if progress is None else progress
+        bar = tqdm(total=n, unit="frame", disable=not show, dynamic_ncols=True)
+        t0 = time.perf_counter()
+        done, interrupted = 0, False
+        try:
+            for i in range(n):
+                rec = sequence[i]
+                t_frame = time.perf_counter()
+                result = self.process(rec.image, rec.timestamp, rec.index)
+                done += 1
+                bar.update(1)
+                dt = time.perf_counter() - t_frame
+                bar.set_postfix(
+                    state=result.state.value, kf=self.map.n_keyframes(), pts=self.map.n_points(),
+                    fps=f"{1.0 / max(dt, 1e-6):.1f}", refresh=False,
+                )  # fmt: skip
+        except KeyboardInterrupt:
+            interrupted = True
+            log.warning("interrupted after %d frames; saving what exists", done)
+        finally:
+            bar.close()
+        return RunSummary(done, interrupted, time.perf_counter() - t0)
+
+    # --- results -------------------------------------------------------------------------
+    def keyframe_trajectory(self) -> Trajectory:
+        return keyframe_trajectory(self.map)
+
+    def camera_trajectory(self) -> Trajectory:
+        return camera_trajectory(self.tracker.records, self.map, self.tracker.generation)
+
+    def stats(self) -> dict[str, Any]:
+        """Counts and per-stage timings (ms) of the run so far."""
+        counts = frame_counts(self.tracker.records, self.tracker.generation)
+        mt = self.mapper.timings
+        return {
+            "frames": counts,
+            "keyframes": self.map.n_keyframes(),
+            "map_points": self.map.n_points(),
+            "map_resets": self.n_resets,
+            "final_state": self.tracker.state.value,
+            "events": self.events,
+            "timing_ms": {
+                "extraction_per_frame": summary_ms(self.timings["extraction"]),
+                "tracking_per_frame": summary_ms(self.timings["tracking"]),
+                "tracking_cpu_per_frame": summary_ms(self.timings["tracking_cpu"]),
+                "frame_total": summary_ms(self.timings["frame"]),
+                "local_mapping_per_keyframe": summary_ms(mt.get("total", [])),
+                "local_mapping_cpu_per_keyframe": summary_ms(mt.get("total_cpu", [])),
+                "local_ba_per_keyframe": summary_ms(mt.get("local_ba", [])),
+                "local_ba_cpu_per_keyframe": summary_ms(mt.get("local_ba_cpu", [])),
+                "mapping_steps": {
+                    k: summary_ms(v)
+                    for k, v in mt.items()
+                    if k not in ("total", "total_cpu", "local_ba", "local_ba_cpu")
+                },
+            },
+            "mapping_counts": dict(self.mapper.counts),
+            "loop_closing": self.loop_closer.stats() if hasattr(self.loop_closer, "stats") else {},
+            "relocalization": self.relocalizer.stats() if hasattr(self.relocalizer, "stats") else {},
+        }
+
+    def save(self, out: str | Path, extra: dict[str, Any] | None = None) -> dict[str, Path]:
+        """Write KeyFrameTrajectory.txt, CameraTrajectory.txt and stats.json into ``out``."""
+        stats = self.stats()
+        if extra:
+            stats.update(extra)
+        return write_outputs(out, self.keyframe_trajectory(), self.camera_trajectory(), stats)

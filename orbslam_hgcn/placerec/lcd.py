@@ -1,0 +1,331 @@
+"""The loop-closure detection comparison of the HGCN paper (its Tables 1 and 2).
+
+Four detectors, each trained on one sequence and tested on another:
+
+=============  ==============================  ==================
+method         detector                        default vocabulary
+=============  ==============================  ==================
+bow            TF-IDF cosine similarity        ORB tree (DBoW2)
+hgcn-bow       TF-IDF cosine similarity        HGCN
+fabmap2        FAB-MAP 2.0 (Chow-Liu tree)     ORB tree (DBoW2)
+hgcn-fabmap    FAB-MAP 2.0 (Chow-Liu tree)     HGCN
+=============  ==============================  ==================
+
+Training supplies the IDF weights (BoW) or the Chow-Liu tree and the sampled new-place
+model (FAB-MAP). Every method yields an (n, n) matrix over the test images, scored by
+:mod:`orbslam_hgcn.placerec.metrics` against the ground-truth loop matrix.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from orbslam_hgcn.config import FabmapConfig
+from orbslam_hgcn.errors import OrbslamError, VocabularyError
+from orbslam_hgcn.placerec.bow_detector import run_bow
+from orbslam_hgcn.placerec.chow_liu import learn_chow_liu_tree
+from orbslam_hgcn.placerec.describe import Describer, WordQuantizer, describe_images, words_of
+from orbslam_hgcn.placerec.fabmap import FabMap2
+from orbslam_hgcn.placerec.metrics import DetectorScore, PRCurve, score_detector
+from orbslam_hgcn.placerec.sequence import PlaceMatches, run_fabmap
+from orbslam_hgcn.placerec.words import count_matrix, occurrence_matrix
+
+log = logging.getLogger(__name__)
+
+METHODS = ("bow", "hgcn-bow", "fabmap2", "hgcn-fabmap")
+METHOD_VOCAB = {"bow": "orb", "hgcn-bow": "hgcn", "fabmap2": "orb", "hgcn-fabmap": "hgcn"}
+METHOD_LABEL = {"bow": "BoW", "hgcn-bow": "HGCN-BoW", "fabmap2": "FAB-MAP 2.0", "hgcn-fabmap": "HGCN-FABMAP"}
+# Acceptance thresholds of the recall/accuracy columns. FAB-MAP: posterior p(L_j | Z) of
+# 0.99, the operating point of Cummins & Newman (IJRR 2008, sec. 6). BoW: cosine similarity.
+DEFAULT_FABMAP_THRESHOLD = 0.99
+DEFAULT_BOW_THRESHOLD = 0.3
+
+
+def parse_methods(spec: str) -> list[str]:
+    """``all`` or a comma-separated list of method names."""
+    if spec.strip().lower() == "all":
+        return list(METHODS)
+    methods = [m.strip().lower() for m in spec.split(",") if m.strip()]
+    for m in methods:
+        if m not in METHODS:
+            raise OrbslamError(f"unknown method {m!r}; use one of {', '.join(METHODS)} or all")
+    return methods
+
+
+def is_fabmap(method: str) -> bool:
+    return method.endswith("fabmap") or method == "fabmap2"
+
+
+def vocab_size(vocab: WordQuantizer) -> int:
+    """Number of words of a vocabulary object (``n_words``, else ``len``)."""
+    n = getattr(vocab, "n_words", None)
+    if n is None:
+        try:
+            n = len(vocab)  # type: ignore[arg-type]
+        except TypeError:
+            raise VocabularyError(f"{vocab!r}: vocabulary does not tell its number of words") from None
+    return int(n)
+
+
+@dataclass(frozen=True, eq=False)
+class WordData:
+    """The words of the training and test images under one vocabulary.
+
+    train, test: per image, (N_i,) int64 word ids; n_words: vocabulary size.
+    """
+
+    train: list[np.ndarray]
+    test: list[np.ndarray]
+    n_words: int
+
+
+@dataclass(frozen=True, eq=False)
+class LcdResult:
+    """One detector's output and its scores."""
+
+    method: str
+    matches: PlaceMatches
+    score: DetectorScore
+    curve: PRCurve
+
+
+def detect(method: str, words: WordData, cfg: FabmapConfig, *, progress: bool = False) -> PlaceMatches:
+    """Run one detector (trained on ``words.train``) over the test images."""
+    if is_fabmap(method):
+        Xtr = occurrence_matrix(words.train, words.n_words)
+        tree = learn_chow_liu_tree(Xtr, smoothing=cfg.smoothing, progress=progress)
+        fm = FabMap2(tree, cfg.p_z_given_e, cfg.p_z_given_not_e, train=Xtr, num_samples=cfg.num_samples, seed=cfg.seed)
+        return run_fabmap(fm, occurrence_matrix(words.test, words.n_words), cfg, progress=progress)
+    return run_bow(count_matrix(words.train, words.n_words), count_matrix(words.test, words.n_words), cfg.min_gap)
+
+
+def evaluate_methods(
+    methods: list[str],
+    words_for: dict[str, WordData],
+    gt: np.ndarray,
+    cfg: FabmapConfig,
+    *,
+    fabmap_threshold: float = DEFAULT_FABMAP_THRESHOLD,
+    bow_threshold: float = DEFAULT_BOW_THRESHOLD,
+    progress: bool = False,
+) -> list[LcdResult]:
+    """Run and score ``methods``; ``words_for[method]`` holds each method's words."""
+    results = []
+    for method in methods:
+        wd = words_for[method]
+        if gt.shape != (len(wd.test), len(wd.test)):
+            raise OrbslamError(f"ground truth is {gt.shape[0]}x{gt.shape[1]} but there are {len(wd.test)} test images")
+        log.info("%s: %d training and %d test images, %d words",
+                 METHOD_LABEL[method], len(wd.train), len(wd.test), wd.n_words)
+        matches = detect(method, wd, cfg, progress=progress)
+        thr = fabmap_threshold if is_fabmap(method) else bow_threshold
+        summary, curve = score_detector(METHOD_LABEL[method], matches.scores, gt, thr, matches.min_gap,
+                                        log_scores=matches.log_scores)
+        results.append(LcdResult(method, matches, summary, curve))
+    return results
+
+
+def format_table(results: list[LcdResult]) -> str:
+    """The comparison as a text table (the paper's columns plus recall@100%P and AUC)."""
+
+    def pct(x: float) -> str:
+        return "   n/a" if x != x else f"{100 * x:6.1f}"
+
+    lines = [
+        f"{'method':<13} {'thresh':>6} {'recall%':>7} {'accuracy%':>9} {'TP':>5} {'FP':>5} {'FN':>5} "
+        f"{'R@100P%':>7} {'AUC%':>6}"
+    ]
+    for r in results:
+        s = r.score
+        lines.append(
+            f"{s.method:<13} {s.threshold:6.2f} {pct(s.recall):>7} {pct(s.accuracy):>9} {s.tp:5d} {s.fp:5d} "
+            f"{s.fn:5d} {pct(s.recall_at_100p):>7} {pct(s.auc):>6}"
+        )
+    n_pos = results[0].score.n_positive if results else 0
+    lines.append(f"({n_pos} test images have a true loop; accuracy = precision TP/(TP+FP))")
+    return "\n".join(lines)
+
+
+def write_outputs(
+    results: list[LcdResult], gt: np.ndarray, out_dir: str | Path, extra: dict | None = None
+) -> list[Path]:
+    """confusion_<method>.npy/.png per method (and confusion_<method>_log.npy of log
+    posteriors for FAB-MAP), pr_curves.png and lcd_results.json."""
+    from orbslam_hgcn.placerec.plots import plot_confusion, plot_pr_curves, write_json
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    record: dict = {"methods": {}, **(extra or {})}
+    for r in results:
+        npy = out / f"confusion_{r.method}.npy"
+        np.save(npy, r.matches.scores)
+        if r.matches.log_scores is not None:
+            np.save(out / f"confusion_{r.method}_log.npy", r.matches.log_scores)
+            paths.append(out / f"confusion_{r.method}_log.npy")
+        png = plot_confusion(out / f"confusion_{r.method}.png", r.matches.scores, gt, r.score.method,
+                             r.matches.min_gap, log_scores=r.matches.log_scores)
+        paths += [npy, png]
+        record["methods"][r.method] = {
+            **r.score.as_dict(),
+            "pr_curve": {"threshold": r.curve.thresholds, "recall": r.curve.recall, "precision": r.curve.precision},
+            "matched": r.matches.matched,
+            "p_new": r.matches.p_new,
+            "min_gap": r.matches.min_gap,
+        }
+    curves = {r.score.method: (r.curve.recall, r.curve.precision) for r in results}
+    paths.append(plot_pr_curves(out / "pr_curves.png", curves))
+    paths.append(write_json(out / "lcd_results.json", record))
+    return paths
+
+
+def quantize_sequences(
+    train_desc: list[np.ndarray], test_desc: list[np.ndarray], vocab: WordQuantizer
+) -> WordData:
+    """Word ids of the training and test descriptors under ``vocab``."""
+    return WordData(words_of(train_desc, vocab), words_of(test_desc, vocab), vocab_size(vocab))
+
+
+def check_vocabulary_features(vocab: WordQuantizer, describer: Describer, name: str) -> None:
+    """A VocabularyError when a vocabulary's descriptor type does not fit the features."""
+    kind = getattr(vocab, "descriptor_type", None)
+    want = "binary" if describer.kind == "orb" else "float"
+    if kind is not None and kind != want:
+        raise VocabularyError(
+            f"{name}: a {kind}-descriptor vocabulary cannot quantise {describer.kind} features "
+            f"({want} descriptors); pass a vocabulary trained on {describer.kind}"
+        )
+
+
+def run_lcd(
+    methods: list[str],
+    train_images,
+    test_images,
+    gt: np.ndarray,
+    vocabularies: dict[str, WordQuantizer],
+    describer: Describer,
+    cfg: FabmapConfig,
+    *,
+    fabmap_threshold: float = DEFAULT_FABMAP_THRESHOLD,
+    bow_threshold: float = DEFAULT_BOW_THRESHOLD,
+    progress: bool = True,
+) -> list[LcdResult]:
+    """Describe both sequences once, quantise per vocabulary, run and score ``methods``.
+
+    train_images, test_images: sized iterables of grayscale images. vocabularies: for each
+    method, the vocabulary object it uses (methods sharing one object share its words).
+    """
+    n_test = len(test_images)
+    if gt.shape != (n_test, n_test):
+        raise OrbslamError(f"ground truth is {gt.shape[0]}x{gt.shape[1]} but the test sequence has {n_test} images")
+    train_desc = describe_images(train_images, describer, total=len(train_images), desc="train features")
+    test_desc = describe_images(test_images, describer, total=n_test, desc="test features")
+    cache: dict[int, WordData] = {}
+    words_for = {}
+    for m in methods:
+        vocab = vocabularies[m]
+        if id(vocab) not in cache:
+            check_vocabulary_features(vocab, describer, repr(vocab))
+            cache[id(vocab)] = quantize_sequences(train_desc, test_desc, vocab)
+        words_for[m] = cache[id(vocab)]
+    return evaluate_methods(methods, words_for, gt, cfg, fabmap_threshold=fabmap_threshold,
+                            bow_threshold=bow_threshold, progress=progress)
+
+
+def load_vocabularies(
+    methods: list[str], vocab: str | None = None, vocab_orb: str | None = None, vocab_hgcn: str | None = None
+) -> dict[str, WordQuantizer]:
+    """The vocabulary object of each method, each distinct file loaded once.
+
+    ``vocab`` (a kind name ``orb``/``hgcn`` or a file) serves every method; otherwise ORB-tree
+    methods use ``vocab_orb`` and HGCN methods ``vocab_hgcn`` (default: the shipped
+    vocabulary of that kind).
+    """
+    from orbslam_hgcn.vocabulary.base import load_vocabulary
+
+    loaded: dict[str, WordQuantizer] = {}
+    out = {}
+    for m in methods:
+        if vocab is not None:
+            spec = vocab
+        else:
+            spec = (vocab_orb or "orb") if METHOD_VOCAB[m] == "orb" else (vocab_hgcn or "hgcn")
+        if spec not in loaded:
+            loaded[spec] = load_vocabulary(spec)
+        out[m] = loaded[spec]
+    return out
+
+
+def ground_truth_for(gt_path: Path, source) -> np.ndarray:
+    """The (n, n) loop matrix of the selected test images.
+
+    A matrix over every image of the sequence is cut down to the selected ones (stride /
+    limit); any other size is a DatasetError naming the file.
+    """
+    from orbslam_hgcn.errors import DatasetError
+    from orbslam_hgcn.placerec.data import load_ground_truth
+
+    gt = load_ground_truth(gt_path)
+    n = len(source)
+    if gt.shape[0] == n:
+        return gt
+    idx = source.indices
+    if gt.shape[0] == source.total:
+        return gt[np.ix_(idx, idx)]
+    raise DatasetError(
+        f"{gt_path}: ground truth is {gt.shape[0]}x{gt.shape[1]} but the test sequence has "
+        f"{n} selected images ({source.total} in all)"
+    )
+
+
+def lcd_command(
+    *,
+    method: str,
+    train: str | Path,
+    test: str | Path,
+    gt: str | Path | None,
+    out: str | Path,
+    features: str = "orb",
+    vocab: str | None = None,
+    vocab_orb: str | None = None,
+    vocab_hgcn: str | None = None,
+    cfg: FabmapConfig | None = None,
+    fabmap_threshold: float = DEFAULT_FABMAP_THRESHOLD,
+    bow_threshold: float = DEFAULT_BOW_THRESHOLD,
+    stride: int = 1,
+    limit: int | None = None,
+    n_features: int = 1000,
+) -> tuple[list[LcdResult], list[Path]]:
+    """``orbslam-hgcn lcd``: files in, comparison table and figures out.
+
+    Inputs are checked (sequences, ground truth and its size, method names) before any
+    vocabulary is loaded or feature extracted.
+    """
+    from orbslam_hgcn.placerec.data import ImageSource
+
+    from orbslam_hgcn.placerec.sequence import check_config
+
+    cfg = check_config(cfg or FabmapConfig())
+    methods = parse_methods(method)
+    test_src = ImageSource(test, stride=stride, limit=limit)
+    train_src = ImageSource(train, stride=stride, limit=limit)
+    gt_path = Path(gt) if gt is not None else Path(test) / "loop_gt.npy"
+    if gt is None and not gt_path.is_file():
+        raise OrbslamError(f"{test}: no --gt given and no loop_gt.npy in the test folder")
+    gt_mat = ground_truth_for(gt_path, test_src)
+    describer = Describer(features, n_features)
+    vocabularies = load_vocabularies(methods, vocab, vocab_orb, vocab_hgcn)
+    results = run_lcd(methods, train_src, test_src, gt_mat, vocabularies, describer, cfg,
+                      fabmap_threshold=fabmap_threshold, bow_threshold=bow_threshold)
+    extra = {
+        "train": str(train), "test": str(test), "ground_truth": str(gt_path), "features": features,
+        "stride": stride, "n_train": len(train_src), "n_test": len(test_src),
+        "vocabularies": {m: repr(v) for m, v in vocabularies.items()},
+        "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
+    }
+    paths = write_outputs(results, gt_mat, out, extra)
+    return results, paths

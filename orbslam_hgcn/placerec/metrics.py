@@ -1,0 +1,202 @@
+"""Recall and precision of a loop-closure detector against a ground-truth loop matrix.
+
+Counting (one decision per test image, as in FAB-MAP's and the HGCN paper's evaluations):
+for query image ``i`` only earlier images ``j <= i - min_gap`` are candidates. Its best
+candidate ``j* = argmax_j scores[i, j]`` is *accepted* when ``scores[i, j*] >= threshold``.
+
+- TP: accepted and ``gt[i, j*]`` is a true loop;
+- FP: accepted and ``gt[i, j*]`` is not a loop;
+- FN: image i has a true loop among its candidates and no correct match was accepted
+  (nothing accepted, or a wrong image accepted: such a row counts both FP and FN);
+- TN: no true loop among its candidates and nothing accepted.
+
+The HGCN paper's equations (9) and (10): ``recall = TP / (TP + FN)`` and ``accuracy`` (its
+name for precision) ``= TP / (TP + FP)``. ``TP + FN`` is the number of images with a true
+loop, whatever the threshold. The ground truth is used symmetrised (``gt | gt.T``), so a
+matrix marking each loop in either triangle works.
+
+The precision-recall curve sweeps the threshold over every distinct positive best score;
+``auc`` is the area under it as the step-wise average precision
+``sum_k (R_k - R_{k-1}) P_k`` (R_0 = 0); ``recall_at_100p`` is the largest recall reached
+with no false positive.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def candidate_mask(n: int, min_gap: int) -> np.ndarray:
+    """(n, n) bool: True where image j may match query i (``j <= i - min_gap``)."""
+    return np.tri(n, n, -max(1, min_gap), dtype=bool)
+
+
+def best_matches(scores: np.ndarray, min_gap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per query: (best candidate (n,) int64, -1 when none; its score (n,) float64, -inf when none)."""
+    n = scores.shape[0]
+    mask = candidate_mask(n, min_gap)
+    masked = np.where(mask, scores, -np.inf)
+    best = masked.argmax(axis=1) if n else np.zeros(0, dtype=np.int64)
+    score = masked[np.arange(n), best] if n else np.zeros(0)
+    has = mask.any(axis=1)
+    return np.where(has, best, -1).astype(np.int64), np.where(has, score, -np.inf)
+
+
+def _check(scores: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    scores = np.asarray(scores, dtype=np.float64)
+    gt = np.asarray(gt).astype(bool)
+    if scores.ndim != 2 or scores.shape[0] != scores.shape[1]:
+        raise ValueError(f"scores must be a square matrix, found shape {scores.shape}")
+    if gt.shape != scores.shape:
+        raise ValueError(f"ground truth {gt.shape} and scores {scores.shape} differ in shape")
+    return scores, gt | gt.T
+
+
+def decisions(scores: np.ndarray, gt: np.ndarray, min_gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per query: (best score (n,), best is a true loop (n,) bool, has a true loop (n,) bool)."""
+    scores, gt = _check(scores, gt)
+    n = scores.shape[0]
+    best, score = best_matches(scores, min_gap)
+    correct = np.zeros(n, dtype=bool)
+    ok = best >= 0
+    correct[ok] = gt[np.flatnonzero(ok), best[ok]]
+    positive = (gt & candidate_mask(n, min_gap)).any(axis=1)
+    return score, correct, positive
+
+
+@dataclass(frozen=True)
+class Counts:
+    """Confusion counts at one threshold, with the paper's recall and accuracy (precision)."""
+
+    threshold: float
+    tp: int
+    fp: int
+    fn: int
+    tn: int
+
+    @property
+    def recall(self) -> float:
+        return self.tp / (self.tp + self.fn) if self.tp + self.fn else float("nan")
+
+    @property
+    def precision(self) -> float:
+        return self.tp / (self.tp + self.fp) if self.tp + self.fp else float("nan")
+
+
+def confusion_counts(scores: np.ndarray, gt: np.ndarray, threshold: float, min_gap: int = 1) -> Counts:
+    """TP/FP/FN/TN of the best-match decisions at ``threshold`` (see the module docstring)."""
+    score, correct, positive = decisions(scores, gt, min_gap)
+    has_candidate = candidate_mask(len(score), min_gap).any(axis=1)
+    accepted = has_candidate & (score >= threshold)
+    tp = int(np.sum(accepted & correct))
+    fp = int(np.sum(accepted & ~correct))
+    fn = int(np.sum(positive & ~(accepted & correct)))
+    tn = int(np.sum(~positive & ~accepted))
+    return Counts(float(threshold), tp, fp, fn, tn)
+
+
+@dataclass(frozen=True, eq=False)
+class PRCurve:
+    """thresholds (K,) descending; precision, recall (K,) at each; n_positive images with a loop."""
+
+    thresholds: np.ndarray
+    precision: np.ndarray
+    recall: np.ndarray
+    n_positive: int
+
+    @property
+    def auc(self) -> float:
+        """Step-wise area under the curve (average precision); NaN without positives."""
+        if self.n_positive == 0:
+            return float("nan")
+        if len(self.recall) == 0:
+            return 0.0
+        dr = np.diff(np.concatenate(([0.0], self.recall)))
+        return float(np.sum(dr * self.precision))
+
+    @property
+    def recall_at_100p(self) -> float:
+        """The largest recall with precision 1 (0 when the first acceptance is wrong)."""
+        if self.n_positive == 0:
+            return float("nan")
+        full = self.precision >= 1.0
+        return float(self.recall[full].max()) if full.any() else 0.0
+
+
+def pr_curve(scores: np.ndarray, gt: np.ndarray, min_gap: int = 1, *, floor: float = 0.0) -> PRCurve:
+    """Sweep the threshold over every distinct best-match score above ``floor``.
+
+    floor: scores at or below it never count as a match (0 for similarities and
+    probabilities; ``-inf`` for log-probabilities).
+    """
+    score, correct, positive = decisions(scores, gt, min_gap)
+    n_pos = int(positive.sum())
+    keep = np.isfinite(score) & (score > floor)
+    s, c = score[keep], correct[keep]
+    order = np.argsort(-s, kind="stable")
+    s, c = s[order], c[order]
+    tp = np.cumsum(c)
+    fp = np.cumsum(~c)
+    last = np.flatnonzero(np.r_[s[1:] != s[:-1], True]) if len(s) else np.zeros(0, dtype=np.int64)
+    tp, fp, thr = tp[last], fp[last], s[last]
+    precision = tp / np.maximum(tp + fp, 1)
+    recall = tp / n_pos if n_pos else np.full(len(tp), np.nan)
+    if n_pos == 0:
+        log.warning("ground truth has no loop among the candidate pairs: recall is undefined")
+    return PRCurve(thr, precision.astype(np.float64), np.asarray(recall, dtype=np.float64), n_pos)
+
+
+@dataclass(frozen=True)
+class DetectorScore:
+    """Summary of one detector: recall/accuracy at a threshold, recall@100%P and AUC."""
+
+    method: str
+    threshold: float
+    recall: float
+    accuracy: float
+    tp: int
+    fp: int
+    fn: int
+    tn: int
+    recall_at_100p: float
+    auc: float
+    n_positive: int
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def score_detector(
+    method: str,
+    scores: np.ndarray,
+    gt: np.ndarray,
+    threshold: float,
+    min_gap: int = 1,
+    *,
+    log_scores: np.ndarray | None = None,
+) -> tuple[DetectorScore, PRCurve]:
+    """Everything the comparison table and plots need for one detector.
+
+    log_scores: (n, n) log of ``scores`` where the detector has it (FAB-MAP's log
+    posteriors); decisions are then taken on it, so that posteriors too small for float64
+    (below about 1e-308) still rank. The curve's thresholds are given as probabilities.
+    """
+    if log_scores is not None:
+        counts = confusion_counts(log_scores, gt, float(np.log(threshold)) if threshold > 0 else -np.inf, min_gap)
+        counts = Counts(float(threshold), counts.tp, counts.fp, counts.fn, counts.tn)
+        curve = pr_curve(log_scores, gt, min_gap, floor=-np.inf)
+        curve = PRCurve(np.exp(curve.thresholds), curve.precision, curve.recall, curve.n_positive)
+    else:
+        counts = confusion_counts(scores, gt, threshold, min_gap)
+        curve = pr_curve(scores, gt, min_gap)
+    summary = DetectorScore(
+        method=method, threshold=float(threshold), recall=counts.recall, accuracy=counts.precision,
+        tp=counts.tp, fp=counts.fp, fn=counts.fn, tn=counts.tn,
+        recall_at_100p=curve.recall_at_100p, auc=curve.auc, n_positive=curve.n_positive,
+    )
+    return summary, curve

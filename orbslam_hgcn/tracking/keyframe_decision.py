@@ -1,0 +1,65 @@
+"""When the tracker makes the current frame a keyframe (ORB-SLAM2 Tracking::NeedNewKeyFrame).
+
+Monocular rules (Mur-Artal, Montiel & Tardos, T-RO 2015, Sec. V-E, with ORB-SLAM2's
+values): no keyframe within ``max_frames`` of a relocalisation once the map holds more
+than ``max_frames`` keyframes; otherwise a keyframe is made when
+
+* c1a: ``max_frames`` frames passed since the last keyframe, or
+* c1b: ``min_frames`` frames passed and local mapping is idle,
+
+and c2: the frame tracks fewer than ``ref_ratio`` (0.9) of the points of the reference
+keyframe that are seen by at least 3 keyframes (2 while the map has at most 2), but more
+than ``keyframe_min_inliers`` (15) points. ``max_frames`` defaults to the camera fps.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+from orbslam_hgcn.config import TrackingConfig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class KeyFrameQuery:
+    """What the decision looks at.
+
+    frame_id: current frame; last_kf_frame_id: frame id of the last keyframe;
+    last_reloc_frame_id: frame of the last relocalisation (-1: none); n_keyframes: in the
+    map; n_inliers: the frame's inliers after local-map tracking; ref_tracked: points of the
+    reference keyframe seen by enough keyframes; mapping_idle: local mapping accepts
+    keyframes; fps: camera frame rate.
+    """
+
+    frame_id: int
+    last_kf_frame_id: int
+    last_reloc_frame_id: int
+    n_keyframes: int
+    n_inliers: int
+    ref_tracked: int
+    mapping_idle: bool
+    fps: float
+
+
+def min_observations(n_keyframes: int) -> int:
+    """Observations a reference point needs to count in c2 (ORB-SLAM2: 3, or 2 with <= 2 keyframes)."""
+    return 2 if n_keyframes <= 2 else 3
+
+
+def max_frames(config: TrackingConfig, fps: float) -> int:
+    return config.max_frames if config.max_frames > 0 else max(1, int(round(fps)))
+
+
+def need_new_keyframe(q: KeyFrameQuery, config: TrackingConfig) -> bool:
+    """True when ORB-SLAM's monocular keyframe rules ask for a keyframe."""
+    n_max = max_frames(config, q.fps)
+    if q.last_reloc_frame_id >= 0 and q.frame_id < q.last_reloc_frame_id + n_max and q.n_keyframes > n_max:
+        return False
+    c1a = q.frame_id >= q.last_kf_frame_id + n_max
+    c1b = q.frame_id >= q.last_kf_frame_id + config.min_frames and q.mapping_idle
+    c2 = q.n_inliers < q.ref_tracked * config.ref_ratio and q.n_inliers > config.keyframe_min_inliers
+    # ORB-SLAM2 interrupts a running local BA and waits when mapping is busy; the caller
+    # decides again on the next frame.
+    return bool((c1a or c1b) and c2 and q.mapping_idle)

@@ -1,0 +1,358 @@
+"""The monocular tracker: one entry, :meth:`Tracker.track`, per frame.
+
+ORB-SLAM's tracking thread as a plain class (Mur-Artal, Montiel & Tardos, T-RO 2015,
+Sec. V; Tracking::Track of ORB-SLAM2): initialise the map from two views; then, per frame,
+predict with the constant-velocity model (or match the reference keyframe), refine the
+pose, track the local map, refine again, decide on a keyframe. States are NOT_INITIALIZED,
+OK and LOST; a map with few keyframes is discarded when tracking is lost and
+initialisation starts over. Relocalisation plugs in as an object with
+``relocalize(frame, grid) -> bool`` (it sets the frame's pose and matches).
+
+The tracker never calls the local mapper: a keyframe it makes is returned in the
+:class:`TrackResult` (its observations already linked in the map) and the caller hands it
+on. For every frame it records the pose relative to its reference keyframe, so the camera
+trajectory can be rebuilt at the end from the optimised keyframes (ORB-SLAM's
+mlRelativeFramePoses).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from orbslam_hgcn.config import BackendConfig, InitializerConfig, TrackingConfig
+from orbslam_hgcn.features.grid import FeatureGrid
+from orbslam_hgcn.features.orb import ORBExtractor
+from orbslam_hgcn.geometry.camera import PinholeCamera
+from orbslam_hgcn.geometry.se3 import inv_T
+from orbslam_hgcn.map import Frame, KeyFrame, Map
+from orbslam_hgcn.tracking.frame_ops import (
+    discard_outliers,
+    good_keyframe,
+    optimize_frame_pose,
+    orthonormalize,
+    pose_from_reference,
+    refresh_frame_points,
+)
+from orbslam_hgcn.tracking.initializer import InitialMap, MonocularInitializer
+from orbslam_hgcn.tracking.keyframe_decision import (
+    KeyFrameQuery,
+    max_frames,
+    min_observations,
+    need_new_keyframe,
+)
+from orbslam_hgcn.tracking.local_map import LocalMap
+from orbslam_hgcn.tracking.motion import track_reference_keyframe, track_with_motion_model
+
+log = logging.getLogger(__name__)
+
+
+class TrackingState(enum.Enum):
+    NOT_INITIALIZED = "not initialised"
+    OK = "ok"
+    LOST = "lost"
+
+
+class Relocalizer(Protocol):
+    def relocalize(self, frame: Frame, grid: FeatureGrid) -> bool: ...
+
+
+@dataclass
+class PoseRecord:
+    """The tracker's estimate for one frame.
+
+    ref_kf_id: reference keyframe (-1: none); T_cr: (4, 4) pose relative to it
+    (T_cw = T_cr @ T_rw), None when the frame has no pose; state: after tracking;
+    generation: the map it refers to (a reset starts a new generation).
+    """
+
+    frame_id: int
+    timestamp: float
+    ref_kf_id: int
+    T_cr: np.ndarray | None
+    state: TrackingState
+    generation: int
+
+
+@dataclass
+class TrackResult:
+    """Outcome of one frame: state, inliers, keyframes to hand to local mapping, events."""
+
+    frame: Frame | None
+    state: TrackingState
+    n_inliers: int = 0
+    new_keyframes: list[KeyFrame] = field(default_factory=list)
+    initialized: bool = False
+    lost: bool = False  # tracking was lost on this frame
+    reset: bool = False  # the map was discarded on this frame (tracker.map is a new one)
+    time_ms: float = 0.0  # wall-clock time of track()
+    cpu_ms: float = 0.0  # CPU time of the process in track()
+
+
+class Tracker:
+    """Monocular ORB-SLAM tracking over one :class:`Map`.
+
+    m: the map; vocabulary: optional (``transform(desc) -> (BowVector, FeatureVector)``),
+    used to match the reference keyframe by BoW; mapping_idle: tells whether local mapping
+    accepts keyframes (always True when stages run in order); relocalizer: optional.
+    """
+
+    def __init__(
+        self,
+        m: Map,
+        config: TrackingConfig | None = None,
+        initializer: InitializerConfig | None = None,
+        backend: BackendConfig | None = None,
+        vocabulary: Any = None,
+        mapping_idle: Callable[[], bool] | None = None,
+        relocalizer: Relocalizer | None = None,
+        extractor: ORBExtractor | None = None,
+        camera: PinholeCamera | None = None,
+    ) -> None:
+        self.config = config or TrackingConfig()
+        self.backend = backend or BackendConfig()
+        self.vocabulary = vocabulary
+        self.mapping_idle = mapping_idle or (lambda: True)
+        self.relocalizer = relocalizer
+        self.extractor = extractor
+        self.init_extractor = None
+        if extractor is not None:
+            n_init = max(1, int(round(extractor.config.n_features * self.config.init_features_factor)))
+            self.init_extractor = ORBExtractor(dataclasses.replace(extractor.config, n_features=n_init))
+        self.camera = camera
+        self.initializer = MonocularInitializer(self.config, initializer, self.backend)
+        self.records: list[PoseRecord] = []
+        self.generation = 0
+        self._next_frame_id = 0
+        self._bind(m)
+
+    # --- state ------------------------------------------------------------------------
+    def _bind(self, m: Map) -> None:
+        self.map = m
+        self.local_map = LocalMap(m, self.config)
+        self.state = TrackingState.NOT_INITIALIZED
+        self.last_frame: Frame | None = None
+        self.velocity: np.ndarray | None = None
+        self.ref_kf_id = -1
+        self.last_kf_frame_id = -1
+        self.last_reloc_frame_id = -1
+        self.initializer.reset()
+
+    def reset(self, m: Map | None = None) -> None:
+        """Forget the map (a new empty one unless given) and start initialising again."""
+        self.generation += 1
+        self._bind(m if m is not None else Map(self.map.config))
+
+    @property
+    def can_recover(self) -> bool:
+        """False once tracking is lost with no way back (no relocaliser)."""
+        return self.state != TrackingState.LOST or self.relocalizer is not None
+
+    # --- entry points ------------------------------------------------------------------
+    def track_image(self, image: np.ndarray, timestamp: float) -> TrackResult:
+        """Extract ORB features of an (H, W) uint8 image and track it."""
+        if self.extractor is None or self.camera is None:
+            raise ValueError("track_image needs the tracker built with an extractor and a camera")
+        initializing = self.state == TrackingState.NOT_INITIALIZED
+        kps = (self.init_extractor if initializing else self.extractor).extract(image, self.camera)
+        return self.track(Frame(self._next_frame_id, timestamp, self.camera, kps))
+
+    def skip(self, frame_id: int, timestamp: float) -> TrackResult:
+        """Record a frame that is not processed (lost with no way to recover)."""
+        self._next_frame_id = frame_id + 1
+        self._record(frame_id, timestamp, None)
+        return TrackResult(None, self.state)
+
+    def track(self, frame: Frame) -> TrackResult:
+        """Track one frame (features extracted); returns what happened."""
+        t0, c0 = time.perf_counter(), time.process_time()
+        self._next_frame_id = frame.id + 1
+        grid = FeatureGrid(frame.keypoints, frame.camera)
+        if self.state == TrackingState.NOT_INITIALIZED:
+            result = self._initialize(frame, grid)
+        else:
+            result = self._track(frame, grid)
+        result.time_ms = 1000.0 * (time.perf_counter() - t0)
+        result.cpu_ms = 1000.0 * (time.process_time() - c0)
+        return result
+
+    # --- initialisation ----------------------------------------------------------------
+    def _initialize(self, frame: Frame, grid: FeatureGrid) -> TrackResult:
+        init = self.initializer.add_frame(frame, grid, self.map)
+        if init is None:
+            self._record(frame.id, frame.timestamp, None)
+            return TrackResult(frame, self.state)
+        self._on_initialized(frame, init)
+        if self.generation > 0:
+            log.warning(
+                "frame %d (t=%.3f): map re-initialised after %d reset(s); earlier frames have no pose",
+                frame.id, frame.timestamp, self.generation,
+            )  # fmt: skip
+        self._record(frame.id, frame.timestamp, frame)
+        return TrackResult(
+            frame, self.state, len(init.point_ids), [init.kf_first, init.kf_second], initialized=True
+        )
+
+    def _on_initialized(self, frame: Frame, init: InitialMap) -> None:
+        kf1, kf2 = init.kf_first, init.kf_second
+        # The reference frame of the initialisation is the first keyframe: its record,
+        # written while not initialised, now gets a pose.
+        for rec in reversed(self.records):
+            if rec.frame_id == kf1.frame_id and rec.generation == self.generation:
+                rec.ref_kf_id, rec.T_cr, rec.state = kf1.id, np.eye(4), TrackingState.OK
+                break
+        frame.clear_links()
+        frame.point_ids[init.slots_second] = init.point_ids
+        frame.ref_kf_id = kf2.id
+        self.ref_kf_id = kf2.id
+        self.last_kf_frame_id = frame.id
+        self.local_map.update(frame)
+        self.local_map.ref_kf_id = kf2.id
+        self.velocity = None
+        self.state = TrackingState.OK
+        self.last_frame = frame
+
+    # --- tracking ----------------------------------------------------------------------
+    def _track(self, frame: Frame, grid: FeatureGrid) -> TrackResult:
+        cfg, m = self.config, self.map
+        was_ok = self.state == TrackingState.OK
+        ok = False
+        if was_ok:
+            last = self.last_frame
+            self._update_last_frame()
+            if self.velocity is not None and frame.id >= self.last_reloc_frame_id + 2:
+                ok = track_with_motion_model(frame, grid, last, self.velocity, m, cfg, self.backend)
+            if not ok:
+                ok = self._track_reference(frame, grid, last)
+        elif self.relocalizer is not None:
+            self._compute_bow(frame)
+            ok = self.relocalizer.relocalize(frame, grid)
+            if ok:
+                self.last_reloc_frame_id = frame.id
+                log.warning("frame %d (t=%.3f): relocalised", frame.id, frame.timestamp)
+        n_in = 0
+        if ok:
+            ok, n_in = self._track_local_map(frame, grid)
+        result = TrackResult(frame, self.state, n_in)
+        if ok:
+            self.state = TrackingState.OK
+            if self.last_frame is not None and self.last_frame.T_cw is not None:
+                self.velocity = orthonormalize(frame.T_cw @ inv_T(self.last_frame.T_cw))
+            kf = self._maybe_keyframe(frame, n_in)
+            if kf is not None:
+                result.new_keyframes.append(kf)
+            discard_outliers(frame)
+            frame.ref_kf_id = self.ref_kf_id
+            self._record(frame.id, frame.timestamp, frame)
+            self.last_frame = frame
+        else:
+            self.velocity = None
+            self.state = TrackingState.LOST
+            frame.T_cw = None
+            self._record(frame.id, frame.timestamp, None)
+            if was_ok:
+                result.lost = True
+                log.warning(
+                    "frame %d (t=%.3f): tracking lost (%d inliers after the local map, %d keyframes in the map)",
+                    frame.id, frame.timestamp, n_in, m.n_keyframes(),
+                )  # fmt: skip
+            if m.n_keyframes() <= cfg.reset_max_keyframes:
+                log.warning(
+                    "map reset: tracking lost with only %d keyframes; initialising again", m.n_keyframes()
+                )
+                self.reset()
+                result.reset = True
+            elif was_ok and self.relocalizer is None:
+                log.warning("no relocalisation available: the remaining frames are counted as lost")
+        result.state = self.state
+        return result
+
+    def _compute_bow(self, frame: Frame) -> None:
+        if self.vocabulary is not None and frame.featvec is None:
+            frame.bow, frame.featvec = self.vocabulary.transform(frame.keypoints.desc)
+
+    def _track_reference(self, frame: Frame, grid: FeatureGrid, last: Frame) -> bool:
+        """Track against the reference keyframe (its nearest good ancestor if culled)."""
+        ref_id = good_keyframe(self.map, self.ref_kf_id)
+        if ref_id < 0:
+            return False
+        self.ref_kf_id = ref_id
+        ref = self.map.keyframe(ref_id)
+        if ref.featvec is not None:
+            self._compute_bow(frame)
+        return track_reference_keyframe(frame, grid, last, ref, self.map, self.config, self.backend)
+
+    def _update_last_frame(self) -> None:
+        """Refresh the last frame: fused points, and its pose from its reference keyframe
+        (which local BA may have moved; ORB-SLAM2 UpdateLastFrame)."""
+        last = self.last_frame
+        refresh_frame_points(last, self.map)
+        rec = self.records[-1] if self.records else None
+        if rec is not None and rec.frame_id == last.id and rec.T_cr is not None and rec.ref_kf_id >= 0:
+            T_cw = pose_from_reference(self.map, rec.ref_kf_id, rec.T_cr)
+            if T_cw is not None:
+                last.set_pose(orthonormalize(T_cw))
+
+    def _track_local_map(self, frame: Frame, grid: FeatureGrid) -> tuple[bool, int]:
+        cfg, m = self.config, self.map
+        refresh_frame_points(frame, m)
+        ref = self.local_map.update(frame)
+        if ref >= 0:
+            self.ref_kf_id = ref
+        recent_reloc = self.last_reloc_frame_id >= 0 and frame.id < self.last_reloc_frame_id + 2
+        window = cfg.local_window_relocalised if recent_reloc else cfg.local_window
+        self.local_map.search(frame, grid, window)
+        optimize_frame_pose(frame, m, self.backend)
+        inl = frame.point_ids[frame.matched]
+        if len(inl):
+            m.increase_found(inl)
+        n_in = len(inl)
+        n_max = max_frames(cfg, frame.camera.fps)
+        if self.last_reloc_frame_id >= 0 and frame.id < self.last_reloc_frame_id + n_max:
+            return n_in >= cfg.min_inliers_relocalised, n_in
+        return n_in >= cfg.min_inliers, n_in
+
+    def _maybe_keyframe(self, frame: Frame, n_in: int) -> KeyFrame | None:
+        m = self.map
+        n_kfs = m.n_keyframes()
+        ref_id = good_keyframe(m, self.ref_kf_id)
+        ref_tracked = 0 if ref_id < 0 else m.tracked_points(ref_id, min_observations(n_kfs))
+        q = KeyFrameQuery(
+            frame_id=frame.id,
+            last_kf_frame_id=self.last_kf_frame_id,
+            last_reloc_frame_id=self.last_reloc_frame_id,
+            n_keyframes=n_kfs,
+            n_inliers=n_in,
+            ref_tracked=ref_tracked,
+            mapping_idle=bool(self.mapping_idle()),
+            fps=frame.camera.fps,
+        )
+        if not need_new_keyframe(q, self.config):
+            return None
+        keep = frame.point_ids >= 0
+        if not self.config.keyframe_keeps_outliers:
+            keep &= ~frame.outlier
+        slots = np.flatnonzero(keep)
+        with m.lock:
+            kf = m.add_keyframe(frame)
+            good = ~m.point_arrays(frame.point_ids[slots]).bad
+            m.add_observations(kf.id, frame.point_ids[slots[good]], slots[good])
+        self.ref_kf_id = kf.id
+        self.last_kf_frame_id = frame.id
+        return kf
+
+    # --- trajectory records ------------------------------------------------------------
+    def _record(self, frame_id: int, timestamp: float, frame: Frame | None) -> None:
+        T_cr, ref = None, -1
+        ref_id = good_keyframe(self.map, self.ref_kf_id) if frame is not None and frame.T_cw is not None else -1
+        if ref_id >= 0:
+            ref = ref_id
+            T_cr = frame.T_cw @ self.map.keyframe(ref).T_wc
+        self.records.append(PoseRecord(frame_id, timestamp, ref, T_cr, self.state, self.generation))

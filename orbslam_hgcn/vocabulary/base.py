@@ -1,0 +1,321 @@
+"""The vocabulary interface, its metadata and its one-file format.
+
+Every vocabulary turns descriptors into words (``transform_words``), words into a TF-IDF
+:class:`~orbslam_hgcn.vocabulary.bow.BowVector` and a
+:class:`~orbslam_hgcn.vocabulary.bow.FeatureVector` (``transform``), scores two vectors
+(``score``) and is saved as one versioned file (``save`` / :func:`load_vocabulary`). The
+rest of the system never needs to know which kind it holds.
+
+File format (version 1): one ``.npz`` (zip) archive holding
+
+* ``_magic``: the string ``orbslam_hgcn-vocabulary``;
+* ``_format_version``: int, :data:`FORMAT_VERSION`;
+* ``_kind``: ``orb`` (DBoW2-style tree) or ``hgcn``;
+* ``_metadata``: JSON text of :class:`VocabularyMetadata`;
+* ``idf``: (W,) float32 inverse document frequency of every word;
+* the arrays of the kind (see each class).
+
+It is written to a temporary file beside the target and renamed into place, so an
+interrupted save never leaves a partial file. Reading checks the header, every array's
+CRC (zip) and the arrays' shapes; any problem is a :class:`VocabularyError` naming the file.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import datetime
+import importlib
+import json
+import logging
+import os
+import zipfile
+import zlib
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from orbslam_hgcn.errors import VocabularyError
+from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector, l1_score
+
+log = logging.getLogger(__name__)
+
+MAGIC = "orbslam_hgcn-vocabulary"
+FORMAT_VERSION = 1
+# Kind -> module defining its class (imported when a file of that kind is loaded).
+KIND_MODULES = {
+    "orb": "orbslam_hgcn.vocabulary.orb_tree",
+    "hgcn": "orbslam_hgcn.vocabulary.hgcn_vocab",
+}
+DATA_DIR = Path(__file__).resolve().parent.parent / "data"
+DEFAULT_FILES = {"orb": DATA_DIR / "vocab_orb_default.npz", "hgcn": DATA_DIR / "vocab_hgcn_default.npz"}
+
+
+@dataclasses.dataclass
+class VocabularyMetadata:
+    """What a vocabulary is and what it was trained on.
+
+    descriptor_type: ``binary`` (rows of packed bits, e.g. ORB's 32 bytes) or ``float``
+    (e.g. 128-D SIFT). descriptor_dim: bytes per binary descriptor, or floats per float
+    descriptor. trained_on: human-readable description of the training imagery.
+    params: training parameters. stats: training figures (times, sizes).
+    """
+
+    kind: str
+    n_words: int
+    descriptor_type: str
+    descriptor_dim: int
+    trained_on: str = ""
+    n_images: int = 0
+    n_descriptors: int = 0
+    created: str = ""
+    params: dict[str, Any] = dataclasses.field(default_factory=dict)
+    stats: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str, path: str | Path) -> VocabularyMetadata:
+        try:
+            data = json.loads(text)
+            names = {f.name for f in dataclasses.fields(cls)}
+            return cls(**{k: v for k, v in data.items() if k in names})
+        except (ValueError, TypeError) as exc:
+            raise VocabularyError(f"{path}: unreadable vocabulary metadata ({exc})") from None
+
+    def describe(self) -> str:
+        """Multi-line human-readable summary (``orbslam-hgcn vocab info``)."""
+        lines = [
+            f"kind:            {self.kind}",
+            f"words:           {self.n_words}",
+            f"descriptors:     {self.descriptor_type}, {self.descriptor_dim} "
+            + ("bytes" if self.descriptor_type == "binary" else "floats"),
+            f"trained on:      {self.trained_on or '(not recorded)'}",
+            f"training images: {self.n_images}",
+            f"training descr.: {self.n_descriptors}",
+            f"created:         {self.created or '(not recorded)'}",
+        ]
+        for title, d in (("parameters", self.params), ("training stats", self.stats)):
+            if d:
+                lines.append(f"{title}:")
+                lines.extend(f"  {k}: {v}" for k, v in sorted(d.items()))
+        return "\n".join(lines)
+
+
+def now_iso() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat()
+
+
+class Vocabulary(abc.ABC):
+    """A visual vocabulary: descriptors -> words -> BoW vectors, with IDF weights.
+
+    idf: (W,) float32 inverse document frequency of each word. metadata: see
+    :class:`VocabularyMetadata`.
+    """
+
+    kind: ClassVar[str]
+
+    def __init__(self, idf: np.ndarray, metadata: VocabularyMetadata) -> None:
+        self.idf = np.ascontiguousarray(idf, dtype=np.float32)
+        self.metadata = metadata
+
+    # --- to implement ---------------------------------------------------------------------
+    @abc.abstractmethod
+    def _words(self, desc: np.ndarray) -> np.ndarray:
+        """(N,) int32 word of each of N validated descriptors."""
+
+    @abc.abstractmethod
+    def word_nodes(self, words: np.ndarray, levels_up: int) -> np.ndarray:
+        """(N,) int32 feature-vector node of each word, ``levels_up`` levels above it."""
+
+    @abc.abstractmethod
+    def _state(self) -> dict[str, np.ndarray]:
+        """The arrays that define the vocabulary (saved beside the header and ``idf``)."""
+
+    @classmethod
+    @abc.abstractmethod
+    def _from_state(cls, arrays: dict[str, np.ndarray], metadata: VocabularyMetadata, path: Path) -> Vocabulary:
+        """Rebuild from saved arrays; shape problems are VocabularyErrors naming ``path``."""
+
+    # --- shared behaviour -----------------------------------------------------------------
+    @property
+    def n_words(self) -> int:
+        return len(self.idf)
+
+    @property
+    def descriptor_type(self) -> str:
+        return self.metadata.descriptor_type
+
+    def check_descriptors(self, desc: np.ndarray) -> np.ndarray:
+        """Validate descriptors: (N, B) uint8 for binary, (N, D) float32 for float vocabularies."""
+        desc = np.asarray(desc)
+        dim = self.metadata.descriptor_dim
+        if self.descriptor_type == "binary":
+            if desc.dtype != np.uint8 or desc.ndim != 2 or desc.shape[1] != dim:
+                if desc.size == 0:
+                    return np.zeros((0, dim), np.uint8)
+                raise ValueError(f"expected (N, {dim}) uint8 binary descriptors, got {desc.shape} {desc.dtype}")
+            return np.ascontiguousarray(desc)
+        if desc.size == 0:
+            return np.zeros((0, dim), np.float32)
+        if desc.ndim != 2 or desc.shape[1] != dim or not np.issubdtype(desc.dtype, np.floating):
+            raise ValueError(f"expected (N, {dim}) float descriptors, got {desc.shape} {desc.dtype}")
+        return np.ascontiguousarray(desc, dtype=np.float32)
+
+    def transform_words(self, desc: np.ndarray) -> np.ndarray:
+        """(N,) int32 word id of each descriptor. desc: (N, 32) uint8 or (N, D) float32."""
+        desc = self.check_descriptors(desc)
+        if len(desc) == 0:
+            return np.zeros(0, np.int32)
+        return self._words(desc)
+
+    def bow_from_words(self, words: np.ndarray) -> BowVector:
+        """TF-IDF BowVector (L1-normalised) of one image from its features' words."""
+        return BowVector.from_words(words, self.idf)
+
+    def transform(self, desc: np.ndarray, levels_up: int = 4) -> tuple[BowVector, FeatureVector]:
+        """BoW vector and feature vector of one image's descriptors.
+
+        desc: (N, 32) uint8 (or (N, D) float32 for a float vocabulary). levels_up: the
+        feature vector indexes nodes this many levels above the words (ORB-SLAM: 4).
+        Features whose word has zero IDF weight are left out of both (as DBoW2 does).
+        """
+        words = self.transform_words(desc)
+        bow = self.bow_from_words(words)
+        keep = self.idf[words] > 0 if len(words) else np.zeros(0, bool)
+        fv = FeatureVector.from_nodes(self.word_nodes(words, levels_up), keep)
+        return bow, fv
+
+    def bow(self, desc: np.ndarray) -> BowVector:
+        """TF-IDF BowVector of one image's descriptors."""
+        return self.bow_from_words(self.transform_words(desc))
+
+    @staticmethod
+    def score(a: BowVector, b: BowVector) -> float:
+        """DBoW2's L1 score ``1 - 0.5 |a - b|_1`` (1: identical, 0: no shared word)."""
+        return l1_score(a, b)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the vocabulary to one file (atomically: temporary file, then rename)."""
+        arrays = {
+            "_magic": np.array(MAGIC),
+            "_format_version": np.array(FORMAT_VERSION, np.int64),
+            "_kind": np.array(self.kind),
+            "_metadata": np.array(self.metadata.to_json()),
+            "idf": self.idf,
+        }
+        for key, val in self._state().items():
+            arrays[key] = np.asarray(val)
+        return atomic_save_npz(path, arrays)
+
+    @classmethod
+    def load(cls, path: str | Path) -> Vocabulary:
+        """Load a vocabulary file of this class's kind (VocabularyError otherwise)."""
+        return load_vocabulary(path, expected_kind=cls.kind)
+
+    def __repr__(self) -> str:
+        m = self.metadata
+        return f"{type(self).__name__}({m.n_words} words, {m.descriptor_type}x{m.descriptor_dim}, {m.trained_on!r})"
+
+
+def atomic_save_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: bool = True) -> Path:
+    """Write ``arrays`` as an .npz at ``path`` via a temporary file and a rename.
+
+    An exception (or Ctrl-C) during the write removes the temporary file and leaves any
+    existing ``path`` untouched.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            (np.savez_compressed if compress else np.savez)(fh, **arrays)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
+    """All arrays of an .npz file, read eagerly; any damage is a VocabularyError."""
+    if not path.is_file():
+        raise VocabularyError(f"{path}: {what} file not found")
+    if path.stat().st_size == 0:
+        raise VocabularyError(f"{path}: {what} file is empty")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, KeyError) as exc:
+        raise VocabularyError(f"{path}: not a readable {what} file (truncated or corrupt: {exc})") from None
+
+
+def load_vocabulary(path: str | Path, expected_kind: str | None = None) -> Vocabulary:
+    """Load any vocabulary file, dispatching on its kind.
+
+    path: a vocabulary file, or the name ``orb`` / ``hgcn`` for the shipped default.
+    expected_kind: if given, a file of another kind is a VocabularyError.
+    """
+    path = Path(path)
+    if not path.exists() and str(path) in DEFAULT_FILES:
+        path = DEFAULT_FILES[str(path)]
+    arrays = read_npz(path, "vocabulary")
+    magic = arrays.get("_magic")
+    if magic is None or magic.shape != () or str(magic) != MAGIC:
+        raise VocabularyError(f"{path}: not an orbslam_hgcn vocabulary file (no '{MAGIC}' header)")
+    version = arrays.get("_format_version")
+    if version is None or version.shape != () or int(version) != FORMAT_VERSION:
+        found = "none" if version is None else str(version)
+        raise VocabularyError(
+            f"{path}: vocabulary format version {found} is not supported (this software reads "
+            f"version {FORMAT_VERSION}); retrain it with 'orbslam-hgcn vocab train'"
+        )
+    kind = str(arrays.get("_kind", ""))
+    if kind not in KIND_MODULES:
+        raise VocabularyError(f"{path}: unknown vocabulary kind {kind!r} (known: {', '.join(KIND_MODULES)})")
+    if expected_kind is not None and kind != expected_kind:
+        raise VocabularyError(f"{path}: is a {kind!r} vocabulary, expected {expected_kind!r}")
+    meta_text = arrays.get("_metadata")
+    if meta_text is None:
+        raise VocabularyError(f"{path}: vocabulary metadata missing")
+    metadata = VocabularyMetadata.from_json(str(meta_text), path)
+    cls = vocabulary_class(kind)
+    idf = arrays.get("idf")
+    if idf is None or idf.ndim != 1 or len(idf) == 0 or not np.all(np.isfinite(idf)):
+        raise VocabularyError(f"{path}: vocabulary has no (or a damaged) 'idf' array; it is empty or corrupt")
+    if metadata.n_words != len(idf):
+        raise VocabularyError(f"{path}: metadata says {metadata.n_words} words but 'idf' holds {len(idf)}")
+    state = {k: v for k, v in arrays.items() if not k.startswith("_")}
+    vocab = cls._from_state(state, metadata, path)
+    log.info("loaded %r from %s", vocab, path)
+    return vocab
+
+
+def vocabulary_class(kind: str) -> type[Vocabulary]:
+    """The Vocabulary subclass of ``kind`` (``orb`` or ``hgcn``)."""
+    module = importlib.import_module(KIND_MODULES[kind])
+    for obj in vars(module).values():
+        if isinstance(obj, type) and issubclass(obj, Vocabulary) and getattr(obj, "kind", None) == kind:
+            return obj
+    raise VocabularyError(f"no vocabulary class of kind {kind!r}")
+
+
+def require(cond: bool, path: Path, message: str) -> None:
+    """Raise a VocabularyError naming ``path`` unless ``cond`` holds (used by ``_from_state``)."""
+    if not cond:
+        raise VocabularyError(f"{path}: corrupt vocabulary: {message}")
+
+
+def default_vocabulary_path(kind: str) -> Path:
+    """The shipped default vocabulary file of ``kind`` (``orb`` or ``hgcn``)."""
+    if kind not in DEFAULT_FILES:
+        raise VocabularyError(f"unknown vocabulary kind {kind!r}; use one of {', '.join(DEFAULT_FILES)}")
+    return DEFAULT_FILES[kind]
+
+
+def open_vocabulary(config) -> Vocabulary:
+    """The vocabulary a :class:`~orbslam_hgcn.config.VocabularyConfig` names: its ``path``,
+    or the shipped default of its ``kind`` when the path is empty."""
+    return load_vocabulary(config.path or default_vocabulary_path(config.kind), expected_kind=config.kind)

@@ -1,0 +1,193 @@
+"""Keyframe database: an inverted index from words to keyframes, and ORB-SLAM's queries.
+
+ORB-SLAM (Mur-Artal, Montiel & Tardos, T-RO 2015, sections VI-A and III-F, and its
+``KeyFrameDatabase``) finds loop and relocalisation candidates in four steps:
+
+1. every keyframe sharing a word with the query (through the inverted index) is a
+   candidate, except the query's connected keyframes (loop detection);
+2. only candidates sharing more than ``0.8 x`` the largest number of shared words are
+   scored (L1 score), and, for loops, only those scoring at least ``min_score`` are kept;
+3. each kept candidate's score is accumulated over its group: itself and those of its
+   best covisible keyframes that were scored in step 2; the group is represented by its
+   best-scoring keyframe;
+4. groups scoring more than ``0.75 x`` the best accumulated score are returned.
+
+The database stores keyframe ids and BoW vectors only: the covisibility graph is reached
+through a function passed to the queries (``kf_id -> best covisible kf ids``), so it does
+not depend on the map. (In step 3 ORB-SLAM's relocalisation query also adds neighbours
+that were not scored in step 2, with a stale score; here both queries use scored
+neighbours only.)
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Collection, Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from orbslam_hgcn.vocabulary.bow import BowVector
+
+log = logging.getLogger(__name__)
+
+CovisibleFn = Callable[[int], Sequence[int]]
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A query answer: ``kf_id`` (best keyframe of its group), its own L1 ``score``, the
+    group's accumulated score ``group_score`` and ``common_words`` shared with the query."""
+
+    kf_id: int
+    score: float
+    group_score: float
+    common_words: int
+
+
+class KeyframeDatabase:
+    """Inverted index word -> {keyframe id: weight} over added BoW vectors.
+
+    min_common_ratio: scored candidates share more than this x the most shared words (0.8).
+    retain_ratio: groups scoring more than this x the best group are returned (0.75).
+    n_covisible: best covisible keyframes forming a candidate's group (10).
+    """
+
+    def __init__(self, min_common_ratio: float = 0.8, retain_ratio: float = 0.75, n_covisible: int = 10) -> None:
+        self.min_common_ratio = float(min_common_ratio)
+        self.retain_ratio = float(retain_ratio)
+        self.n_covisible = int(n_covisible)
+        self._index: dict[int, dict[int, float]] = {}
+        self._bows: dict[int, BowVector] = {}
+
+    # --- content --------------------------------------------------------------------------
+    def add(self, kf_id: int, bow: BowVector) -> None:
+        """Index keyframe ``kf_id`` under every word of ``bow`` (re-adding replaces it)."""
+        kf_id = int(kf_id)
+        if kf_id in self._bows:
+            self.erase(kf_id)
+        self._bows[kf_id] = bow
+        for word, weight in zip(bow.words.tolist(), bow.weights.tolist()):
+            self._index.setdefault(word, {})[kf_id] = weight
+
+    def erase(self, kf_id: int) -> None:
+        """Remove keyframe ``kf_id`` (no effect if absent)."""
+        bow = self._bows.pop(int(kf_id), None)
+        if bow is None:
+            return
+        for word in bow.words.tolist():
+            postings = self._index.get(word)
+            if postings is not None:
+                postings.pop(int(kf_id), None)
+                if not postings:
+                    del self._index[word]
+
+    def clear(self) -> None:
+        self._index.clear()
+        self._bows.clear()
+
+    def __len__(self) -> int:
+        return len(self._bows)
+
+    def __contains__(self, kf_id: object) -> bool:
+        return kf_id in self._bows
+
+    def keyframes(self) -> list[int]:
+        return list(self._bows)
+
+    def bow(self, kf_id: int) -> BowVector:
+        return self._bows[int(kf_id)]
+
+    def postings(self, word: int) -> dict[int, float]:
+        """{kf_id: weight} of the keyframes holding ``word`` (a copy)."""
+        return dict(self._index.get(int(word), {}))
+
+    # --- scoring --------------------------------------------------------------------------
+    def shared(self, bow: BowVector, exclude: Collection[int] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Keyframes sharing a word with ``bow``.
+
+        Returns (kf_ids (M,) int64, common_words (M,) int64, scores (M,) float64), where
+        ``scores`` is the L1 score ``sum_w min(q_w, v_w)`` (equal to DBoW2's
+        ``1 - 0.5 |q - v|_1`` for L1-normalised vectors), accumulated over the postings.
+        """
+        ids: list[int] = []
+        kf_w: list[float] = []
+        q_w: list[float] = []
+        for word, weight in zip(bow.words.tolist(), bow.weights.tolist()):
+            postings = self._index.get(word)
+            if postings:
+                ids.extend(postings.keys())
+                kf_w.extend(postings.values())
+                q_w.extend([weight] * len(postings))
+        if not ids:
+            empty = np.zeros(0, np.int64)
+            return empty, empty, np.zeros(0, np.float64)
+        ids_a = np.asarray(ids, np.int64)
+        if exclude:
+            keep = ~np.isin(ids_a, np.fromiter(exclude, np.int64, len(exclude)))
+            ids_a = ids_a[keep]
+            kf_a, q_a = np.asarray(kf_w)[keep], np.asarray(q_w)[keep]
+        else:
+            kf_a, q_a = np.asarray(kf_w), np.asarray(q_w)
+        uniq, inv = np.unique(ids_a, return_inverse=True)
+        common = np.bincount(inv, minlength=len(uniq))
+        scores = np.bincount(inv, weights=np.minimum(kf_a, q_a), minlength=len(uniq))
+        return uniq, common, scores
+
+    def query(self, bow: BowVector, max_results: int | None = None, exclude: Collection[int] = ()) -> list[tuple[int, float]]:
+        """Plain DBoW2 query: (kf_id, L1 score) of keyframes sharing a word, best first."""
+        ids, _, scores = self.shared(bow, exclude)
+        order = np.lexsort((ids, -scores))
+        if max_results is not None:
+            order = order[:max_results]
+        return list(zip(ids[order].tolist(), scores[order].tolist()))
+
+    def detect_loop_candidates(
+        self, bow: BowVector, connected: Iterable[int], min_score: float, covisible: CovisibleFn | None = None
+    ) -> list[Candidate]:
+        """ORB-SLAM's ``DetectLoopCandidates``.
+
+        bow: the query keyframe's vector. connected: its connected keyframes (excluded;
+        include the query's own id if it is in the database). min_score: lowest L1 score of
+        a candidate (ORB-SLAM: the lowest score between the query and its covisible
+        keyframes). covisible: kf_id -> best covisible kf ids (None: no groups).
+        """
+        return self._detect(bow, set(int(k) for k in connected), float(min_score), covisible)
+
+    def detect_relocalization_candidates(self, bow: BowVector, covisible: CovisibleFn | None = None) -> list[Candidate]:
+        """ORB-SLAM's ``DetectRelocalizationCandidates`` (no exclusion, no minimum score)."""
+        return self._detect(bow, set(), None, covisible)
+
+    def _detect(
+        self, bow: BowVector, exclude: set[int], min_score: float | None, covisible: CovisibleFn | None
+    ) -> list[Candidate]:
+        ids, common, scores = self.shared(bow, exclude)
+        if len(ids) == 0:
+            return []
+        min_common = float(common.max()) * self.min_common_ratio
+        scored = common > min_common
+        kept = scored if min_score is None else scored & (scores >= min_score)
+        if not kept.any():
+            return []
+        score_of = dict(zip(ids[scored].tolist(), scores[scored].tolist()))
+        common_of = dict(zip(ids.tolist(), common.tolist()))
+        groups: dict[int, float] = {}
+        for kf, own in zip(ids[kept].tolist(), scores[kept].tolist()):
+            best_kf, best, acc = kf, own, own
+            if covisible is not None:
+                for nb in list(covisible(kf))[: self.n_covisible]:
+                    s = score_of.get(int(nb))
+                    if s is None:
+                        continue
+                    acc += s
+                    if s > best:
+                        best_kf, best = int(nb), s
+            groups[best_kf] = max(acc, groups.get(best_kf, -1.0))
+        best_acc = max(groups.values())
+        out = [
+            Candidate(kf, score_of[kf], acc, int(common_of[kf]))
+            for kf, acc in groups.items()
+            if acc > self.retain_ratio * best_acc
+        ]
+        out.sort(key=lambda c: (-c.group_score, -c.score, c.kf_id))
+        return out

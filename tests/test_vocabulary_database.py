@@ -1,0 +1,76 @@
+"""Keyframe database: inverted index and ORB-SLAM's loop / relocalisation queries on
+hand-made BoW vectors with hand-computed answers."""
+
+import pytest
+
+from orbslam_hgcn.vocabulary import BowVector, KeyframeDatabase
+
+
+def _bow(words):
+    return BowVector.from_dict({w: 1.0 / len(words) for w in words})
+
+
+QUERY = _bow(range(10))  # words 0..9, 0.1 each
+KFS = {
+    1: _bow(range(10)),  # A: 10 shared words, score 1.0
+    2: _bow([*range(9), 20]),  # B: 9 shared, 0.9
+    3: _bow([*range(8), 20, 21]),  # C: 8 shared: not above 0.8 x 10, never scored
+    4: _bow([*range(1, 10), 22]),  # D: 9 shared, 0.9
+    5: _bow([*range(5), 30, 31, 32, 33, 34]),  # E: 5 shared, not scored
+    6: _bow(range(40, 50)),  # F: no shared word
+}
+COVIS = {1: [3], 2: [4], 3: [1], 4: [2], 5: [], 6: []}
+
+
+@pytest.fixture
+def db():
+    d = KeyframeDatabase()
+    for kf, bow in KFS.items():
+        d.add(kf, bow)
+    return d
+
+
+def test_inverted_index_and_shared_words(db):
+    assert len(db) == 6 and 4 in db
+    assert sorted(db.postings(0)) == [1, 2, 3, 5]
+    ids, common, scores = db.shared(QUERY)
+    assert ids.tolist() == [1, 2, 3, 4, 5]
+    assert common.tolist() == [10, 9, 8, 9, 5]
+    assert scores.tolist() == pytest.approx([1.0, 0.9, 0.8, 0.9, 0.5], abs=1e-6)
+    assert db.query(QUERY, max_results=3) == [(1, pytest.approx(1.0)), (2, pytest.approx(0.9)), (4, pytest.approx(0.9))]
+
+
+def test_loop_candidates_accumulate_over_covisible_groups(db):
+    cands = db.detect_loop_candidates(QUERY, connected=[], min_score=0.0, covisible=COVIS.get)
+    # Groups: A alone 1.0 (C unscored); B + D = 1.8; D + B = 1.8. Kept above 0.75 x 1.8 = 1.35.
+    assert [c.kf_id for c in cands] == [2, 4]
+    assert [c.group_score for c in cands] == pytest.approx([1.8, 1.8], abs=1e-6)
+    assert [c.score for c in cands] == pytest.approx([0.9, 0.9], abs=1e-6)
+    assert [c.common_words for c in cands] == [9, 9]
+
+
+def test_loop_candidates_exclude_connected_keyframes(db):
+    cands = db.detect_loop_candidates(QUERY, connected=[2], min_score=0.0, covisible=COVIS.get)
+    # B is excluded: D's group is 0.9, A's 1.0; both above 0.75.
+    assert [(c.kf_id, round(c.group_score, 6)) for c in cands] == [(1, 1.0), (4, 0.9)]
+
+
+def test_min_score_filters_candidates_but_neighbours_still_count(db):
+    covis = {1: [2], 2: [1], 3: [], 4: [], 5: [], 6: []}
+    cands = db.detect_loop_candidates(QUERY, connected=[], min_score=0.95, covisible=covis.get)
+    # Only A reaches 0.95; its group adds B's 0.9 (scored, though below min_score).
+    assert [(c.kf_id, round(c.group_score, 6)) for c in cands] == [(1, 1.9)]
+    assert db.detect_loop_candidates(QUERY, connected=[], min_score=1.01, covisible=covis.get) == []
+
+
+def test_relocalisation_candidates_and_erase(db):
+    assert [c.kf_id for c in db.detect_relocalization_candidates(QUERY, COVIS.get)] == [2, 4]
+    db.erase(4)
+    assert 4 not in db and 4 not in db.postings(1)
+    cands = db.detect_relocalization_candidates(QUERY, COVIS.get)
+    # A 1.0, B 0.9 (its neighbour D is gone): both above 0.75.
+    assert [(c.kf_id, round(c.group_score, 6)) for c in cands] == [(1, 1.0), (2, 0.9)]
+    db.erase(4)  # erasing twice is harmless
+    db.add(2, _bow(range(40, 50)))  # re-adding replaces the old vector
+    assert db.postings(0).keys() == {1, 3, 5}
+    assert db.detect_relocalization_candidates(_bow([99])) == []

@@ -1,0 +1,167 @@
+"""The HGCN vocabulary's parts: PCA, kNN graph, propagation blocks, label seeding, the
+HGCN on planted clusters, and the trained vocabulary's quantiser."""
+
+import dataclasses
+from math import comb
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import vocab_fixtures as vf
+
+from orbslam_hgcn.config import HgcnTrainConfig
+from orbslam_hgcn.vocabulary.graph import (
+    build_graph,
+    descriptor_features,
+    fit_pca,
+    knn,
+    normalised_adjacency,
+    symmetric_adjacency,
+    two_hop_blocks,
+)
+from orbslam_hgcn.vocabulary.hgcn import train_hgcn
+from orbslam_hgcn.vocabulary.hgcn_vocab import seed_labels
+
+
+def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
+    """Hubert & Arabie's adjusted Rand index of two labellings."""
+    _, a = np.unique(a, return_inverse=True)
+    _, b = np.unique(b, return_inverse=True)
+    table = np.zeros((a.max() + 1, b.max() + 1), np.int64)
+    np.add.at(table, (a, b), 1)
+    pairs = sum(comb(int(v), 2) for v in table.ravel())
+    rows = sum(comb(int(v), 2) for v in table.sum(1))
+    cols = sum(comb(int(v), 2) for v in table.sum(0))
+    expected = rows * cols / comb(len(a), 2)
+    return (pairs - expected) / (0.5 * (rows + cols) - expected)
+
+
+def test_pca_lookup_table_equals_unpacked_projection():
+    rng = np.random.default_rng(0)
+    desc = rng.integers(0, 256, (500, 32), dtype=np.uint8)
+    pca = fit_pca(desc, 20)
+    f = descriptor_features(desc)
+    np.testing.assert_allclose(pca.transform(desc), (f - pca.mean) @ pca.components, atol=1e-4)
+    np.testing.assert_allclose(pca.components.T @ pca.components, np.eye(20), atol=1e-5)
+    # The first component carries the most variance of the data.
+    var = ((f - pca.mean) @ pca.components).var(0)
+    assert np.all(np.diff(var) <= 1e-3)
+
+
+def test_knn_graph_is_symmetric_with_requested_degree():
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(300, 20)).astype(np.float32)
+    x[10] = x[11]  # exact duplicates must not confuse self-exclusion
+    k = 9
+    nbr = knn(x, k)
+    d = ((x[:, None] - x[None]) ** 2).sum(-1)
+    np.fill_diagonal(d, np.inf)
+    brute = np.argsort(d, axis=1)[:, :k]
+    agree = np.mean([len(set(a) & set(b)) / k for a, b in zip(nbr, brute)])
+    assert agree > 0.99 and not np.any(nbr == np.arange(300)[:, None])
+    a = symmetric_adjacency(nbr)
+    assert (a != a.T).nnz == 0 and a.diagonal().sum() == 0
+    assert np.asarray(a.sum(1)).min() >= k and set(np.unique(a.data)) == {1.0}
+    for i in range(300):
+        assert set(nbr[i]) <= set(a.indices[a.indptr[i] : a.indptr[i + 1]])
+    an = normalised_adjacency(a).toarray()
+    dense = a.toarray() + np.eye(300)
+    deg = dense.sum(1)
+    np.testing.assert_allclose(an, dense / np.sqrt(deg[:, None] * deg[None, :]), rtol=1e-5)
+    np.testing.assert_allclose(an, an.T)
+    # The approximate (IVF) path still gives every node at least k neighbours.
+    big = rng.normal(size=(2000, 20)).astype(np.float32)
+    assert np.asarray(symmetric_adjacency(knn(big, k, exact_max=100)).sum(1)).min() >= k
+
+
+def test_two_hop_blocks_compute_two_layers_exactly():
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(400, 5)).astype(np.float32)
+    adj = build_graph(x, 4)
+    feats = rng.normal(size=(400, 3))
+    seeds = np.sort(rng.choice(400, 25, replace=False))
+    hop2, (r1, c1, v1), hop1, (r2, c2, v2) = two_hop_blocks(adj, seeds)
+    b1 = sp.csr_matrix((v1, (r1, c1)), shape=(len(hop1), len(hop2)))
+    b2 = sp.csr_matrix((v2, (r2, c2)), shape=(len(seeds), len(hop1)))
+    exact = (adj @ (adj @ feats))[seeds]
+    np.testing.assert_allclose(b2 @ (b1 @ feats[hop2]), exact, rtol=1e-5, atol=1e-6)
+    # With 3 sampled layer-1 neighbours: fewer inputs, the same aggregation on average.
+    mean = np.zeros_like(exact)
+    for _ in range(300):
+        h2, (r1, c1, v1), h1, (r2, c2, v2) = two_hop_blocks(adj, seeds, 3, rng)
+        assert len(h2) <= len(hop2) and np.array_equal(h1, hop1)
+        b1 = sp.csr_matrix((v1, (r1, c1)), shape=(len(h1), len(h2)))
+        mean += sp.csr_matrix((v2, (r2, c2)), shape=(len(seeds), len(h1))) @ (b1 @ feats[h2]) / 300
+    assert np.abs(mean - exact).max() < 0.1 * np.abs(exact).max()
+
+
+def test_seed_labels_fraction_and_shared_track_labels():
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(1000, 4)).astype(np.float32)
+    cfg = HgcnTrainConfig(n_words=20, label_fraction=0.1, kmeans_iters=5)
+    labels, centres = seed_labels(x, cfg, None, np.random.default_rng(0))
+    assert (labels >= 0).sum() == 100 and centres.shape == (20, 4)
+    tracks = np.arange(1000) // 5  # 200 tracks of 5 descriptors
+    labels_t, _ = seed_labels(x, cfg, tracks, np.random.default_rng(0))
+    seeded = np.unique(tracks[labels >= 0])
+    members = np.isin(tracks, seeded)
+    assert np.all(labels_t[members] >= 0) and np.all(labels_t[~members] == -1)
+    for t in seeded:
+        assert len(np.unique(labels_t[tracks == t])) == 1
+
+
+def test_hgcn_recovers_planted_clusters_from_ten_percent_seeds():
+    rng = np.random.default_rng(0)
+    n_clusters, per = 6, 80
+    centres = rng.normal(size=(n_clusters, 20)) * 1.2
+    truth = np.repeat(np.arange(n_clusters), per)
+    x = (centres[truth] + rng.normal(size=(len(truth), 20))).astype(np.float32)
+    seeded = rng.random(len(truth)) < 0.1
+    labels = np.where(seeded, truth, -1)
+    cfg = HgcnTrainConfig(n_words=n_clusters, hidden_dim=16, batch_size=48, epochs=1.0, min_steps=30)
+    _, pred, stats = train_hgcn(x, build_graph(x, 9), labels, n_clusters, cfg, progress=False)
+    assert adjusted_rand_index(pred, truth) > 0.9
+    assert np.mean(pred[~seeded] == truth[~seeded]) > 0.9
+    assert all(c > 0 for c in stats["curvatures"])
+
+
+@pytest.mark.skipif(not vf.available(), reason="real sample data not found")
+def test_trained_hgcn_vocabulary_quantiser():
+    vocab = vf.small_hgcn_vocab()
+    cfg = vf.SMALL_HGCN
+    assert vocab.n_words == cfg.n_words and vocab.centroids.shape == (cfg.n_words, cfg.pca_dim)
+    assert np.all(np.isfinite(vocab.centroids)) and np.all(vocab.idf >= 0)
+    desc = vf.descriptors("euroc", 0)
+    x = vocab.project(desc)
+    brute = ((x[:, None] - vocab.centroids[None]) ** 2).sum(-1).argmin(1)
+    np.testing.assert_array_equal(vocab.transform_words(desc), brute)  # exact search below 2048 words
+    words = vocab.transform_words(desc)
+    np.testing.assert_array_equal(vocab.word_nodes(words, 4), vocab.word_coarse[words])
+    assert vocab.word_coarse.max() < cfg.n_coarse
+    meta = vocab.metadata
+    assert meta.n_descriptors == len(vf.training_set()[0]) and meta.n_images == 10
+    assert meta.params["pca_dim"] == 20 and meta.params["knn"] == 9
+    assert dataclasses.asdict(cfg)["label_fraction"] == meta.params["label_fraction"]
+
+
+@pytest.mark.skipif(not vf.available(), reason="real sample data not found")
+def test_tracks_from_consecutive_real_frames():
+    from orbslam_hgcn.vocabulary.tracks import build_tracks, match_pair
+
+    kps = [vf.keypoints("tum", i) for i in range(4, 8)]  # 33 ms apart: nearly the same view
+    a, b = match_pair(kps[0].desc, kps[1].desc, kps[0].uv_raw, kps[1].uv_raw)
+    assert len(a) > 300 and len(np.unique(a)) == len(a) and len(np.unique(b)) == len(b)
+    assert np.median(np.linalg.norm(kps[0].uv_raw[a] - kps[1].uv_raw[b], axis=1)) < 3.0
+    # Different places (TUM vs EuRoC) give (almost) no verified match.
+    e = vf.keypoints("euroc", 0)
+    assert len(match_pair(kps[0].desc, e.desc, kps[0].uv_raw, e.uv_raw)[0]) < 20
+    # Tracks over the four frames, plus one frame of another sequence (never linked).
+    desc = [k.desc for k in kps] + [e.desc]
+    uv = [k.uv_raw for k in kps] + [e.uv_raw]
+    track = build_tracks(desc, uv, np.array([0, 0, 0, 0, 1]), progress=False)
+    image = np.repeat(np.arange(5), [len(d) for d in desc])
+    assert np.all(track[image == 4] == -1)
+    linked = track >= 0
+    assert linked[image < 4].mean() > 0.5
+    pairs = np.unique(np.stack([track[linked], image[linked]], 1), axis=0)
+    assert len(pairs) == linked.sum()  # one descriptor per image in every track

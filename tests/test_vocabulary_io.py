@@ -1,0 +1,179 @@
+"""Vocabulary files: round trips, damaged files, the CLI and interrupted training."""
+
+import zipfile
+
+import numpy as np
+import pytest
+import vocab_fixtures as vf
+
+from orbslam_hgcn import cli
+from orbslam_hgcn.errors import VocabularyError
+from orbslam_hgcn.vocabulary import load_vocabulary
+from orbslam_hgcn.vocabulary import train as train_mod
+from orbslam_hgcn.vocabulary.base import FORMAT_VERSION, atomic_save_npz
+from orbslam_hgcn.vocabulary.hgcn_vocab import HGCNVocabulary
+from orbslam_hgcn.vocabulary.orb_tree import TreeVocabulary
+
+pytestmark = pytest.mark.skipif(not vf.available(), reason="real sample data not found")
+
+KINDS = {"orb": vf.small_orb_vocab, "hgcn": vf.small_hgcn_vocab}
+
+
+@pytest.fixture(params=list(KINDS))
+def saved(request, tmp_path):
+    vocab = KINDS[request.param]()
+    path = tmp_path / f"{request.param}.npz"
+    vocab.save(path)
+    return vocab, path
+
+
+def test_round_trip_gives_identical_output(saved):
+    vocab, path = saved
+    back = load_vocabulary(path)
+    assert type(back) is type(vocab) and back.kind == vocab.kind
+    assert back.metadata == vocab.metadata
+    for desc in (vf.descriptors("tum", 0), vf.descriptors("euroc", 0)):
+        np.testing.assert_array_equal(back.transform_words(desc), vocab.transform_words(desc))
+        (b1, f1), (b2, f2) = vocab.transform(desc), back.transform(desc)
+        assert b1 == b2 and len(b1) > 0
+        assert f1.keys() == f2.keys() and all(np.array_equal(f1[k], f2[k]) for k in f1)
+    assert type(vocab).load(path).n_words == vocab.n_words
+
+
+def _expect_error(path, match=None, **kw):
+    with pytest.raises(VocabularyError, match=match) as err:
+        load_vocabulary(path, **kw)
+    assert str(path) in str(err.value)
+
+
+def test_damaged_files_raise_vocabulary_errors(saved, tmp_path):
+    vocab, path = saved
+    data = path.read_bytes()
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(data[: len(data) // 2])
+    _expect_error(truncated, "truncated or corrupt")
+    corrupt = tmp_path / "corrupt.npz"
+    flipped = bytearray(data)
+    for i in range(len(data) // 3, len(data) // 3 + 64):
+        flipped[i] ^= 0xFF
+    corrupt.write_bytes(bytes(flipped))
+    _expect_error(corrupt)
+    empty = tmp_path / "empty.npz"
+    empty.write_bytes(b"")
+    _expect_error(empty, "empty")
+    _expect_error(tmp_path / "missing.npz", "not found")
+    other = "hgcn" if vocab.kind == "orb" else "orb"
+    _expect_error(path, f"is a '{vocab.kind}' vocabulary, expected '{other}'", expected_kind=other)
+    with pytest.raises(VocabularyError):
+        (HGCNVocabulary if vocab.kind == "orb" else TreeVocabulary).load(path)
+
+
+def _rewrite(path, out, **changes):
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    for key, val in changes.items():
+        if val is None:
+            arrays.pop(key)
+        else:
+            arrays[key] = val
+    atomic_save_npz(out, arrays)
+    return out
+
+
+def test_header_and_content_checks(saved, tmp_path):
+    vocab, path = saved
+    _expect_error(_rewrite(path, tmp_path / "v.npz", _format_version=np.array(FORMAT_VERSION + 1)),
+                  f"version {FORMAT_VERSION + 1} is not supported")
+    _expect_error(_rewrite(path, tmp_path / "m.npz", _magic=np.array("something else")), "not an orbslam_hgcn")
+    _expect_error(_rewrite(path, tmp_path / "k.npz", _kind=np.array("sift")), "unknown vocabulary kind")
+    _expect_error(_rewrite(path, tmp_path / "i.npz", idf=np.zeros(0, np.float32)), "empty or corrupt")
+    key = "centres" if vocab.kind == "orb" else "centroids"
+    _expect_error(_rewrite(path, tmp_path / "c.npz", **{key: None}), "corrupt vocabulary")
+    plain = tmp_path / "plain.npz"
+    np.savez(plain, a=np.arange(3))
+    _expect_error(plain, "not an orbslam_hgcn")
+
+
+def test_interrupted_save_leaves_no_file(tmp_path, monkeypatch):
+    vocab = vf.small_orb_vocab()
+    target = tmp_path / "v.npz"
+
+    def boom(fh, **arrays):
+        fh.write(b"partial")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "savez_compressed", boom)
+    with pytest.raises(KeyboardInterrupt):
+        vocab.save(target)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_train_info_and_interrupt(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "voc.npz"
+    images = str(vf.TUM_RGB)
+    assert cli.main(["vocab", "train", "--kind", "orb", "--images", images, "--max-images", "3",
+                     "--levels", "2", "--out", str(out)]) == 0
+    assert out.is_file() and not (tmp_path / "voc.npz.descriptors.npz").exists()
+    assert cli.main(["vocab", "info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "kind:            orb" in text and "training images: 3" in text and images in text
+    # Ctrl-C during training: exit 130, no vocabulary, the descriptor cache kept for resuming.
+    out2 = tmp_path / "voc2.npz"
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_mod, "train_vocabulary", interrupted)
+    assert cli.main(["vocab", "train", "--kind", "orb", "--images", images, "--max-images", "3",
+                     "--out", str(out2)]) == 130
+    assert not out2.exists() and (tmp_path / "voc2.npz.descriptors.npz").is_file()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    # Errors are one line and exit 2.
+    assert cli.main(["vocab", "info", str(tmp_path / "nope.npz")]) == 2
+    assert "vocabulary file not found" in capsys.readouterr().err
+
+
+def test_zip_member_crc_is_checked(tmp_path):
+    vocab = vf.small_orb_vocab()
+    path = tmp_path / "v.npz"
+    vocab.save(path)
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo("centres.npy")
+        offset = info.header_offset + 30 + len(info.filename) + len(info.extra) + info.compress_size // 2
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0x55
+    path.write_bytes(bytes(data))
+    _expect_error(path)
+
+
+@pytest.mark.parametrize("kind", ["orb", "hgcn"])
+def test_shipped_default_vocabularies(kind):
+    from orbslam_hgcn.config import VocabularyConfig
+    from orbslam_hgcn.vocabulary import default_vocabulary_path, open_vocabulary
+
+    path = default_vocabulary_path(kind)
+    if not path.is_file():
+        pytest.skip(f"{path} not built (tools/train_default_vocabs.py)")
+    assert path.stat().st_size < 50e6
+    vocab = open_vocabulary(VocabularyConfig(kind=kind))
+    meta = vocab.metadata
+    assert vocab.kind == kind and meta.n_words == vocab.n_words >= 4000
+    # Trained on synthetic scenes, not on the evaluation data.
+    assert "synthetic" in meta.trained_on and "tum" not in meta.trained_on.lower()
+    assert "euroc" not in meta.trained_on.lower() and meta.n_descriptors >= 100_000
+    bow, fv = vocab.transform(vf.descriptors("tum", 0))
+    assert len(bow) > 100 and fv.n_features() > 500
+
+
+def test_config_validation(tmp_path):
+    from orbslam_hgcn.config import HgcnTrainConfig, VocabularyConfig
+    from orbslam_hgcn.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="vocabulary.kind"):
+        VocabularyConfig(kind="sift")
+    with pytest.raises(ConfigError, match="label_fraction"):
+        HgcnTrainConfig(label_fraction=0.0)
+    bad = tmp_path / "train.yaml"
+    bad.write_text("hgcn:\n  n_wrods: 100\n")
+    assert cli.main(["vocab", "train", "--kind", "hgcn", "--images", str(vf.TUM_RGB), "--out",
+                     str(tmp_path / "x.npz"), "--config", str(bad)]) == 2

@@ -1,0 +1,64 @@
+"""Shared, cached test data for the vocabulary tests: ORB descriptors of the real sample
+images and two small vocabularies trained on them (trained once per test session)."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from orbslam_hgcn.config import HgcnTrainConfig
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
+TUM_RGB = SHARED / "tum_fr3_long_office_household_sample" / "rgb"
+EUROC_RGB = SHARED / "euroc_V1_01_easy_first95" / "mav0" / "cam0" / "data"
+
+
+def available() -> bool:
+    return TUM_RGB.is_dir() and EUROC_RGB.is_dir()
+
+
+@functools.lru_cache(maxsize=None)
+def keypoints(which: str, index: int):
+    """ORB-SLAM keypoints (KeypointSet) of frame ``index`` of ``tum`` or ``euroc``."""
+    from orbslam_hgcn.features.orb import ORBExtractor
+
+    folder = TUM_RGB if which == "tum" else EUROC_RGB
+    path = sorted(folder.glob("*.png"))[index]
+    return ORBExtractor().extract(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+
+
+def descriptors(which: str, index: int) -> np.ndarray:
+    """(N, 32) uint8 ORB-SLAM descriptors of frame ``index`` of ``tum`` or ``euroc``."""
+    return keypoints(which, index).desc
+
+
+def training_set() -> tuple[np.ndarray, np.ndarray]:
+    """Descriptors of TUM frames 4..9 and EuRoC frames 20, 40, 60, 80 (not the query
+    frames TUM 0, 1 and EuRoC 0), with the image of each."""
+    frames = [("tum", i) for i in range(4, 10)] + [("euroc", i) for i in range(20, 81, 20)]
+    parts = [descriptors(w, i) for w, i in frames]
+    return np.concatenate(parts), np.repeat(np.arange(len(parts)), [len(p) for p in parts])
+
+
+@functools.lru_cache(maxsize=None)
+def small_orb_vocab():
+    from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
+
+    desc, img = training_set()
+    return train_tree_vocabulary(desc, img, k=10, levels=3, trained_on="test frames", progress=False)
+
+
+SMALL_HGCN = HgcnTrainConfig(n_words=150, hidden_dim=16, epochs=1.0, min_steps=10, batch_size=128,
+                             candidate_classes=64, n_coarse=20, kmeans_iters=10)
+
+
+@functools.lru_cache(maxsize=None)
+def small_hgcn_vocab():
+    from orbslam_hgcn.vocabulary.hgcn_vocab import train_hgcn_vocabulary
+
+    desc, img = training_set()
+    return train_hgcn_vocabulary(desc, img, SMALL_HGCN, trained_on="test frames", progress=False)

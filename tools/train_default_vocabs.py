@@ -1,0 +1,102 @@
+"""Build the shipped default vocabularies (orbslam_hgcn/data/vocab_{orb,hgcn}_default.npz).
+
+Training imagery: synthetic office scenes rendered by ``orbslam_hgcn.datasets.synthetic``
+with scene (and texture) seeds 1001..1000+S, far from the seeds evaluation sequences use
+(0 and small numbers), each seen along one generated loop round its desk, sampled sparsely
+(default 60 frames per loop) so the images cover the whole room. No TUM, EuRoC or other
+evaluation imagery is used. Both vocabularies are trained on the same descriptors
+(ORB-SLAM's extractor, 1000 features per image); the HGCN's seed labels are shared along
+feature tracks matched between consecutive frames of each scene. The run is reproducible: the same
+arguments give the same files (up to the creation date in the metadata).
+
+    python tools/train_default_vocabs.py                 # render, extract, train both
+    python tools/train_default_vocabs.py --kinds hgcn    # only the HGCN vocabulary
+
+Rendered frames and the descriptor cache stay in ``--work-dir`` for later runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from orbslam_hgcn.config import HgcnTrainConfig, TreeTrainConfig
+from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+from orbslam_hgcn.vocabulary.base import DEFAULT_FILES
+from orbslam_hgcn.vocabulary.tracks import build_tracks
+from orbslam_hgcn.vocabulary.train import extract_descriptors, open_image_source, select_images, train_vocabulary
+
+log = logging.getLogger("train_default_vocabs")
+
+FIRST_SCENE_SEED = 1001
+
+
+def render_training_scenes(work: Path, n_scenes: int, frames: int, progress: bool) -> list[Path]:
+    """Render (or reuse) one sparse loop per training scene; returns the sequence folders."""
+    folders = []
+    for k in range(n_scenes):
+        seed = FIRST_SCENE_SEED + k
+        opts = SynthOptions(trajectory="loop", frames=frames, fps=frames / 30.0, scene_seed=seed, texture_seed=seed,
+                            seed=seed, noise=2.0, exposure_drift=0.1)
+        folders.append(render_sequence(work / f"scene_{seed}", opts, progress=progress))
+    return folders
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--work-dir", type=Path, default=Path.home() / ".cache" / "orbslam_hgcn" / "vocab_training")
+    ap.add_argument("--scenes", type=int, default=10, help="training scenes (seeds 1001..)")
+    ap.add_argument("--frames", type=int, default=60, help="frames per scene, spread over one loop")
+    ap.add_argument("--features", type=int, default=1000, help="ORB features per image")
+    ap.add_argument("--kinds", nargs="+", choices=("orb", "hgcn"), default=["orb", "hgcn"])
+    ap.add_argument("--hgcn-words", type=int, default=HgcnTrainConfig.n_words)
+    ap.add_argument("--orb-levels", type=int, default=TreeTrainConfig.levels)
+    ap.add_argument("--no-tracks", action="store_true",
+                    help="hgcn: no shared labels along feature tracks of consecutive frames")
+    ap.add_argument("--out-dir", type=Path, default=None, help="write here instead of orbslam_hgcn/data/")
+    ap.add_argument("--render-only", action="store_true", help="only render the training scenes")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    args.work_dir.mkdir(parents=True, exist_ok=True)
+
+    t0 = time.perf_counter()
+    folders = render_training_scenes(args.work_dir, args.scenes, args.frames, progress=True)
+    log.info("rendered %d scenes in %.0f s", len(folders), time.perf_counter() - t0)
+    if args.render_only:
+        return 0
+    sources = [open_image_source(f) for f in folders]
+    pairs = select_images(sources, None)
+    cache = args.work_dir / f"descriptors_{args.scenes}x{args.frames}_{args.features}.npz"
+    data = extract_descriptors(sources, pairs, args.features, cache)
+    desc, image_ids = data.desc, data.image_ids
+    trained_on = (f"synthetic office scenes (orbslam_hgcn.datasets.synthetic, loop trajectory, noise 2, "
+                  f"exposure drift 0.1), scene/texture seeds {FIRST_SCENE_SEED}..{FIRST_SCENE_SEED + args.scenes - 1}, "
+                  f"{args.frames} frames each; no evaluation imagery")
+    log.info("%d descriptors from %d images", len(desc), len(pairs))
+    for kind in args.kinds:
+        out = DEFAULT_FILES[kind] if args.out_dir is None else args.out_dir / DEFAULT_FILES[kind].name
+        t = time.perf_counter()
+        if kind == "orb":
+            vocab = train_vocabulary("orb", desc, image_ids, tree=TreeTrainConfig(levels=args.orb_levels),
+                                     trained_on=trained_on)
+        else:
+            track_ids = None if args.no_tracks else build_tracks(*data.per_image(), data.groups)
+            vocab = train_vocabulary("hgcn", desc, image_ids,
+                                     hgcn=dataclasses.replace(HgcnTrainConfig(), n_words=args.hgcn_words),
+                                     track_ids=track_ids, trained_on=trained_on)
+        vocab.metadata.params["n_features"] = args.features
+        vocab.save(out)
+        log.info("%s: %d words, %.1f MB, trained in %.0f s", out, vocab.n_words, out.stat().st_size / 1e6,
+                 time.perf_counter() - t)
+        print(vocab.metadata.describe())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
