@@ -127,6 +127,18 @@ class FeatureGrid:
         keep &= (hi < 0) | (oc <= hi)
         return q2[keep], f[keep]
 
+    def contains(self, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """(M,) bool: points in front of the camera (``z`` > 0) whose (M, 2) undistorted
+        pixel coords ``uv`` fall inside the image bounds; nan coords are outside."""
+        with np.errstate(invalid="ignore"):
+            return (
+                (z > 0)
+                & (uv[:, 0] >= self.min_x)
+                & (uv[:, 0] < self.max_x)
+                & (uv[:, 1] >= self.min_y)
+                & (uv[:, 1] < self.max_y)
+            )
+
     def features_in_area(
         self, x: float, y: float, r: float, min_level: int = -1, max_level: int = -1
     ) -> np.ndarray:

@@ -29,17 +29,6 @@ def _project(K: np.ndarray, X_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([K[0, 0] * X_c[:, 0] * inv_z + K[0, 2], K[1, 1] * X_c[:, 1] * inv_z + K[1, 2]], axis=1), z
 
 
-def _inside(grid: FeatureGrid, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
-    with np.errstate(invalid="ignore"):
-        return (
-            (z > 0)
-            & (uv[:, 0] >= grid.min_x)
-            & (uv[:, 0] < grid.max_x)
-            & (uv[:, 1] >= grid.min_y)
-            & (uv[:, 1] < grid.max_y)
-        )
-
-
 def match_points_in_keyframe(
     m: Map,
     kf: KeyFrame,
@@ -77,7 +66,7 @@ def match_points_in_keyframe(
     dist = np.linalg.norm(PO, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         ok = (
-            _inside(grid, uv, z)
+            grid.contains(uv, z)
             & (dist >= pts.min_dist)
             & (dist <= pts.max_dist)
             & (np.sum(PO * pts.normal, axis=1) >= min_view_cos * dist)
@@ -115,7 +104,7 @@ def _search_one_way(
     X_dst = X_src @ S_dst_src[:3, :3].T + S_dst_src[:3, 3]
     uv, z = _project(dst.camera.K, X_dst)
     dist = np.linalg.norm(X_dst, axis=1)
-    ok = _inside(dst_grid, uv, z) & (dist >= pts.min_dist) & (dist <= pts.max_dist) & ~pts.bad
+    ok = dst_grid.contains(uv, z) & (dist >= pts.min_dist) & (dist <= pts.max_dist) & ~pts.bad
     sel = np.flatnonzero(ok)
     if len(sel) == 0:
         return out

@@ -31,17 +31,6 @@ from orbslam_hgcn.tracking.frame_ops import (
 log = logging.getLogger(__name__)
 
 
-def _in_bounds(uv: np.ndarray, z: np.ndarray, grid: FeatureGrid) -> np.ndarray:
-    with np.errstate(invalid="ignore"):
-        return (
-            (z > 0)
-            & (uv[:, 0] >= grid.min_x)
-            & (uv[:, 0] < grid.max_x)
-            & (uv[:, 1] >= grid.min_y)
-            & (uv[:, 1] < grid.max_y)
-        )
-
-
 def _link(frame: Frame, pids: np.ndarray, match: np.ndarray) -> int:
     ok = match >= 0
     frame.point_ids[match[ok]] = pids[ok]
@@ -57,7 +46,7 @@ def search_last_frame(frame: Frame, grid: FeatureGrid, last: Frame, m: Map, wind
     pids = last.point_ids[idx]
     pts = m.point_arrays(pids)
     uv, z = project(frame.T_cw, pts.position, frame.camera.K)
-    keep = _in_bounds(uv, z, grid) & ~pts.bad
+    keep = grid.contains(uv, z) & ~pts.bad
     idx, pids, uv = idx[keep], pids[keep], uv[keep]
     lkp = last.keypoints
     match, _ = search_by_projection(
@@ -111,7 +100,7 @@ def match_reference_by_projection(
         return 0
     pts = m.point_arrays(pids)
     uv, z = project(frame.T_cw, pts.position, frame.camera.K)
-    keep = _in_bounds(uv, z, grid) & ~pts.bad
+    keep = grid.contains(uv, z) & ~pts.bad
     slots, pids, uv = slots[keep], pids[keep], uv[keep]
     center = frame.center
     dist = np.linalg.norm(pts.position[keep] - center, axis=1)
