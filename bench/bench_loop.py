@@ -49,10 +49,11 @@ import numpy as np
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.datasets.base import FrameRecord, Sequence
 from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+from orbslam_hgcn.loop.synthetic import circle_ground_truth
 from orbslam_hgcn.pipeline.run import trajectory_ate
 from orbslam_hgcn.pipeline.system import Configs, System
 from orbslam_hgcn.tracking.tracker import TrackingState
-from orbslam_hgcn.trajectory import Trajectory, write_tum
+from orbslam_hgcn.trajectory import Trajectory
 from orbslam_hgcn.vocabulary import load_vocabulary
 
 REPO = Path(__file__).resolve().parents[1]
@@ -64,23 +65,6 @@ SEQUENCES = {
     "fr3_repeated": SynthOptions(trajectory="replay", gt=str(FR3_GT), frames=2100, repeated_texture=True),
     "elsewhere": SynthOptions(trajectory="replay", gt=str(FR3_GT), frames=60, scene_seed=5, texture_seed=5),
 }
-
-
-def circle_ground_truth(path: Path, radius: float = 1.2, turns: float = 1.3, seconds: float = 20.0,
-                        height: float = 0.5) -> Path:
-    """Write a TUM trajectory (100 Hz) circling the origin at ``radius`` and ``height`` m,
-    looking at the origin, ``turns`` turns in ``seconds``; returns ``path``."""
-    t = np.arange(0.0, seconds + 1e-9, 0.01)
-    a = 2 * np.pi * turns * t / seconds
-    poses = np.tile(np.eye(4), (len(t), 1, 1))
-    c = np.stack([radius * np.cos(a), radius * np.sin(a), np.full_like(a, height)], axis=1)
-    z = -c / np.linalg.norm(c, axis=1, keepdims=True)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    poses[:, :3, 0], poses[:, :3, 1], poses[:, :3, 2], poses[:, :3, 3] = x, np.cross(z, x), z, c
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_tum(path, Trajectory(1000.0 + t, poses))
-    return path
 
 
 def ensure(name: str, cache: Path) -> Path:

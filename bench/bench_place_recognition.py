@@ -1,12 +1,13 @@
-"""Place recognition with the two shipped vocabularies on a synthetic sequence with revisits.
+"""Place recognition with the two shipped vocabularies on synthetic sequences with revisits.
 
 Sequences (default ``--trajectory twolap``): the camera walks twice round the desk of a
-synthetic office (``orbslam_hgcn.datasets.synthetic``, scene seeds 0, 1, 2 by default: not
-training scenes of the shipped vocabularies, which use 1001..), 40 s per lap at 10 fps, with sensor noise and
-exposure drift. The laps are two generated loops (``LoopPath``) with different random
-seeds: different start points, speeds, heights and gaze wander, so the second lap revisits
-the places of the first from other viewpoints (0.3 m farther out and 0.15 m lower). ``--trajectory tum`` replays the real
-camera motion of TUM fr3/long_office_household instead (one loop round a desk).
+synthetic office (``orbslam_hgcn.datasets.synthetic``; scene seeds 0, 1, 2 by default, not
+training scenes of the shipped vocabularies, which use 1001..), 40 s per lap at 10 fps,
+with sensor noise and exposure drift. The laps are two generated loops (``LoopPath``) with
+different random seeds: different start points, speeds, heights and gaze wander, so the
+second lap revisits the places of the first from other viewpoints (0.3 m farther out and
+0.15 m lower). ``--trajectory tum`` replays the real camera motion of TUM
+fr3/long_office_household instead (one loop round a desk).
 
 Protocol: every ``--kf-every``-th frame is a keyframe; each keyframe queries a
 KeyframeDatabase holding the keyframes at least ``--min-gap`` frames older, and its best

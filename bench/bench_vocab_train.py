@@ -61,7 +61,8 @@ def child(kind: str, n: int, cache: Path, words: int | None) -> None:
     cpu = (r1.ru_utime + r1.ru_stime) - (r0.ru_utime + r0.ru_stime)
     print(json.dumps({"kind": kind, "n": n, "copies": n_copies, "seconds": seconds, "cpu_seconds": cpu,
                       "words": vocab.n_words,
-                      "rss_data_mb": rss_data / 1024, "rss_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "rss_data_mb": rss_data / 1024,
+                      "rss_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                       "stats": vocab.metadata.stats}))
 
 
@@ -84,7 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"data: {n_real} real ORB descriptors from synthetic renders ({args.cache}); larger sizes add "
           "copies with 8 random bits flipped")
     print("time: wall seconds and CPU seconds (all threads; on a shared machine wall time includes waiting)")
-    print(f"{'kind':5s} {'descriptors':>11s} {'flipped':>8s} {'words':>7s} {'wall s':>8s} {'CPU s':>8s} {'data MB':>8s} "
+    print(f"{'kind':5s} {'descriptors':>11s} {'flipped':>8s} {'words':>7s} {'wall s':>8s} {'CPU s':>8s} "
+          f"{'data MB':>8s} "
           f"{'peak MB':>8s}  stages (wall s)")
     for n in args.sizes:
         for kind in args.kinds:
@@ -97,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             r = json.loads(out.stdout.strip().splitlines()[-1])
             st = r["stats"]
-            stages = ", ".join(f"{k[:-8]} {v:.0f}s" for k, v in st.items() if k.endswith("_seconds") and k != "train_seconds")
+            stages = ", ".join(f"{k[:-8]} {v:.0f}s" for k, v in st.items()
+                               if k.endswith("_seconds") and k != "train_seconds")
             print(f"{kind:5s} {n:11d} {r['copies']:8d} {r['words']:7d} {r['seconds']:8.1f} {r['cpu_seconds']:8.1f} "
                   f"{r['rss_data_mb']:8.0f} {r['rss_peak_mb']:8.0f}  {stages}", flush=True)
     return 0

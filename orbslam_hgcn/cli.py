@@ -307,12 +307,13 @@ def _add_vocab(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--levels", type=int, default=None, help="orb: tree depth L (default 5)")
     t.add_argument("--branching", type=int, default=None, help="orb: children per node k (default 10)")
     t.add_argument("--label-fraction", type=float, default=None, help="hgcn: fraction of seeded nodes (0.1)")
-    t.add_argument("--epochs", type=float, default=None, help="hgcn: passes over the seeded nodes (3)")
+    t.add_argument("--epochs", type=float, default=None, help="hgcn: passes over the seeded nodes (2)")
     t.add_argument("--config", default=None,
                    help="YAML with 'hgcn:' / 'vocab_tree:' sections overriding training parameters")
     t.add_argument("--trained-on", default=None, help="description of the imagery kept in the metadata")
-    t.add_argument("--tracks", action="store_true",
-                   help="hgcn: share seed labels along feature tracks matched between consecutive images")
+    t.add_argument("--no-tracks", action="store_true",
+                   help="hgcn: do not share seed labels along feature tracks matched between consecutive "
+                        "images of a sequence (shared by default)")
     t.add_argument("--keep-cache", action="store_true", help="keep the descriptor cache <out>.descriptors.npz")
     t.set_defaults(func=_run_vocab_train)
     i = vsub.add_parser("info", help="print a vocabulary's metadata")
@@ -340,7 +341,7 @@ def _run_vocab_train(args: argparse.Namespace) -> int:
     words = args.words if (args.kind == "hgcn" or args.levels is None) else None
     vocab = train_from_images(
         args.kind, args.images, args.out, words=words, max_images=args.max_images, n_features=args.features,
-        tree=tree, hgcn=hgcn, trained_on=args.trained_on, tracks=args.tracks, keep_cache=args.keep_cache,
+        tree=tree, hgcn=hgcn, trained_on=args.trained_on, tracks=not args.no_tracks, keep_cache=args.keep_cache,
     )
     print(vocab.metadata.describe())
     print(f"wrote {args.out}")

@@ -23,6 +23,7 @@ from orbslam_hgcn.loop.synthetic import (
     RingScene,
     bow_of,
     build_ring_map,
+    circle_ground_truth,
     duplicate_count,
     observe,
     ring_pose,
@@ -297,9 +298,6 @@ def test_system_closes_a_small_synthetic_loop(tmp_path_factory):
     """The whole system over a small loop (1.3 turns round a desk, 20 s): the loop is found
     between the two visits and the keyframe ATE falls when it is corrected. Needs the
     shipped HGCN vocabulary; renders 600 frames and runs SLAM on them (minutes)."""
-    import sys
-    from pathlib import Path
-
     from orbslam_hgcn.datasets import open_sequence
     from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
     from orbslam_hgcn.pipeline.run import trajectory_ate
@@ -308,9 +306,6 @@ def test_system_closes_a_small_synthetic_loop(tmp_path_factory):
 
     if not default_vocabulary_path("hgcn").is_file():
         pytest.skip("the shipped HGCN vocabulary is not installed")
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    from bench_loop import circle_ground_truth
-
     work = tmp_path_factory.mktemp("circle")
     gt = circle_ground_truth(work / "gt.txt")
     seq = open_sequence("tum", render_sequence(work / "seq", SynthOptions(trajectory="replay", gt=str(gt)), progress=False))

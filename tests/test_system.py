@@ -16,7 +16,8 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import make_T
 from orbslam_hgcn.map import Frame, Map, check_invariants
 from orbslam_hgcn.pipeline.results import camera_trajectory
-from orbslam_hgcn.pipeline.system import System
+from orbslam_hgcn.config import TrackingConfig
+from orbslam_hgcn.pipeline.system import Configs, System
 from orbslam_hgcn.tracking.tracker import PoseRecord, TrackingState
 from orbslam_hgcn.trajectory import read_tum
 
@@ -29,25 +30,27 @@ def synth_path(synth_replay_100) -> Path:
 
 
 @pytest.fixture(scope="module")
-def run100(synth_path):
+def run80(synth_path):
     seq = open_sequence("tum", synth_path)
     system = System(seq.camera)
-    summary = system.run(seq, progress=False)
+    summary = system.run(seq, 80, progress=False)
     return seq, system, summary
 
 
-def test_end_to_end_accuracy(run100):
-    seq, system, summary = run100
+def test_end_to_end_accuracy(run80):
+    seq, system, summary = run80
     stats = system.stats()
-    assert summary.frames == 100 and not summary.interrupted
+    assert summary.frames == 80 and not summary.interrupted
     assert stats["frames"]["lost"] == 0 and stats["map_resets"] == 0
-    assert stats["frames"]["tracked"] + stats["frames"]["not_initialized"] == 100
-    assert stats["frames"]["tracked"] >= 70
+    assert stats["frames"]["tracked"] + stats["frames"]["not_initialized"] == 80
+    assert stats["frames"]["tracked"] >= 50
     kf, cam = system.keyframe_trajectory(), system.camera_trajectory()
     assert len(cam) == stats["frames"]["tracked"] and len(kf) == system.map.n_keyframes() >= 3
-    length = np.sum(np.linalg.norm(np.diff(seq.ground_truth.positions[-len(cam):], axis=0), axis=1))
-    assert length > 0.05  # the camera moves enough for the bound below to mean something
-    # Measured on this stretch (0.7 m of camera path): keyframes 0.8 mm RMSE, frames 2.8 mm
+    gt = seq.ground_truth
+    tracked = (gt.timestamps >= cam.timestamps[0]) & (gt.timestamps <= cam.timestamps[-1])
+    length = np.sum(np.linalg.norm(np.diff(gt.positions[tracked], axis=0), axis=1))
+    assert length > 0.2  # the camera moves enough for the bounds below to mean something
+    # Measured on this stretch (0.39 m of camera path): keyframes 0.6 mm RMSE, frames 2.8 mm
     # (frame-to-frame jitter of the pose-only refinement); bounds with margin for rendering.
     for traj, bound in ((kf, 0.003), (cam, 0.005)):
         r = evaluate(seq.ground_truth, traj, align="sim3")
@@ -56,8 +59,8 @@ def test_end_to_end_accuracy(run100):
     assert check_invariants(system.map) == []
 
 
-def test_stats_and_files(run100, tmp_path):
-    _, system, _ = run100
+def test_stats_and_files(run80, tmp_path):
+    _, system, _ = run80
     paths = system.save(tmp_path / "out")
     for key in ("keyframes", "camera", "stats"):
         assert paths[key].is_file()
@@ -95,29 +98,30 @@ class _Spliced(Sequence):
 
 
 def test_lost_tracking_is_counted_and_results_written(synth_path, tmp_path, caplog):
-    seq = _Spliced(open_sequence("tum", synth_path), 50, 38, "blank")
-    system = System(seq.camera)
+    seq = _Spliced(open_sequence("tum", synth_path), 34, 27, "blank")
+    # reset_max_keyframes=0: the young map is kept (lost, not discarded), so the frames
+    # tracked before stay in the results (the reset path is tested in test_tracking).
+    system = System(seq.camera, Configs(tracking=TrackingConfig(reset_max_keyframes=0)))
     with caplog.at_level("WARNING"):
         summary = system.run(seq, progress=False)
-    assert summary.frames == 50
+    assert summary.frames == 34
     stats = system.stats()
-    assert stats["frames"]["tracked"] > 0
-    # Every blank frame is lost (with a young map the map may also be reset: then the frames
-    # before count as discarded), and no blank frame gets a pose.
     f = stats["frames"]
-    assert f["lost"] + f["not_initialized"] >= 12
+    assert f["tracked"] > 0 and f["tracked"] + f["not_initialized"] == 27
+    assert f["lost"] == 7 and stats["final_state"] == "lost"  # every blank frame is lost
     assert any("tracking lost" in r.message for r in caplog.records)
+    assert any("no relocalisation available" in r.message for r in caplog.records)
     paths = system.save(tmp_path)
     cam = read_tum(paths["camera"])
-    assert not np.any(np.isin(np.round(cam.timestamps, 6), np.round(seq.timestamps[38:], 6)))
+    assert not np.any(np.isin(np.round(cam.timestamps, 6), np.round(seq.timestamps[27:], 6)))
     assert json.loads(paths["stats"].read_text())["frames"]["lost"] == f["lost"]
 
 
 def test_ctrl_c_keeps_what_exists(synth_path, tmp_path):
-    seq = _Spliced(open_sequence("tum", synth_path), 100, 30, "interrupt")
+    seq = _Spliced(open_sequence("tum", synth_path), 100, 26, "interrupt")
     system = System(seq.camera)
     summary = system.run(seq, progress=False)
-    assert summary.interrupted and summary.frames == 30
+    assert summary.interrupted and summary.frames == 26
     paths = system.save(tmp_path)
     assert len(read_tum(paths["camera"])) == system.stats()["frames"]["tracked"] > 0
 
@@ -157,7 +161,7 @@ def test_camera_trajectory_through_culled_reference():
 
 def test_cli_run_writes_results(synth_path, tmp_path, capsys):
     out = tmp_path / "run"
-    rc = main(["run", str(synth_path), "--dataset", "tum", "--out", str(out), "--no-loop", "--max-frames", "30",
+    rc = main(["run", str(synth_path), "--dataset", "tum", "--out", str(out), "--no-loop", "--max-frames", "26",
                "--no-progress"])  # fmt: skip
     assert rc == 0
     text = capsys.readouterr().out
@@ -165,7 +169,7 @@ def test_cli_run_writes_results(synth_path, tmp_path, capsys):
         assert (out / name).is_file()
     assert "ATE Sim(3)" in text
     stats = json.loads((out / "stats.json").read_text())
-    assert stats["frames"]["frames"] == 30 and stats["dataset"]["kind"] == "tum"
+    assert stats["frames"]["frames"] == 26 and stats["dataset"]["kind"] == "tum"
     assert "rmse_m" in stats["ate_sim3"]["camera"]
 
 

@@ -68,13 +68,13 @@ def test_initialisation_recovers_relative_pose(synth_seq):
 
 
 def test_tracker_follows_the_camera(synth_seq):
-    """Tracker and local mapper over 50 frames: every frame after initialisation tracked,
+    """Tracker and local mapper over 40 frames: every frame after initialisation tracked,
     relative motion matching the ground truth after one scale."""
     m = Map()
     mapper = LocalMapper(m)
     tracker = Tracker(m, extractor=ORBExtractor(ORBConfig()), camera=synth_seq.camera)
     poses, gts = {}, {}
-    for i in range(50):
+    for i in range(40):
         rec = synth_seq[i]
         r = tracker.track_image(rec.image, rec.timestamp)
         if r.reset:
@@ -86,7 +86,7 @@ def test_tracker_follows_the_camera(synth_seq):
             poses[i], gts[i] = r.frame.T_cw.copy(), rec.T_wc
     assert tracker.state == TrackingState.OK
     first = min(poses)
-    assert first < 35 and len(poses) == 50 - first
+    assert first < 30 and len(poses) == 40 - first
     ids = sorted(poses)
     # Relative motion first -> each frame, estimate vs ground truth (scale from the last).
     T_rel = [poses[i] @ inv_T(poses[first]) for i in ids]
@@ -120,13 +120,13 @@ def test_tracking_and_mapping_with_a_vocabulary(synth_seq, monkeypatch):
     mapper = LocalMapper(m, vocabulary=vocab)
     tracker = Tracker(m, vocabulary=vocab, extractor=ext, camera=synth_seq.camera)
     tracked = 0
-    for i in range(36):
+    for i in range(30):
         rec = synth_seq[i]
         r = tracker.track_image(rec.image, rec.timestamp)
         for kf in r.new_keyframes:
             mapper.process(kf)
         tracked += r.state == TrackingState.OK
-    assert tracker.state == TrackingState.OK and tracked >= 8
+    assert tracker.state == TrackingState.OK and tracked >= 5
     assert calls["bow"] >= 1  # the first frame after initialisation has no velocity yet
     kfs = tracker.map.keyframes()
     assert all(kf.featvec is not None and len(kf.featvec) > 1 for kf in kfs)
@@ -148,8 +148,8 @@ def test_blank_frames_never_initialise_and_lost_after_texture_vanishes(synth_seq
         assert r.state == TrackingState.NOT_INITIALIZED and not r.new_keyframes
     results = []
     rng = np.random.default_rng(0)
-    for i in range(3, 42):
-        if i < 35:
+    for i in range(3, 32):
+        if i < 27:
             rec = synth_seq[i]
             img, t = rec.image, rec.timestamp
         else:  # the lens is covered: uniform grey with faint noise
@@ -162,19 +162,19 @@ def test_blank_frames_never_initialise_and_lost_after_texture_vanishes(synth_seq
             mapper.process(kf)
         results.append(r)
     states = [r.state for r in results]
-    assert TrackingState.OK in states[:32]
-    first_blank = results[32]
+    assert states[23] == TrackingState.OK  # frame 26, the last textured one
+    first_blank = results[24]
     assert first_blank.lost and first_blank.frame.T_cw is None
-    assert TrackingState.OK not in states[32:]
-    assert all(rec.T_cr is None for rec in tracker.records[35:])
-    assert len(tracker.records) == 42
+    assert TrackingState.OK not in states[24:]
+    assert all(rec.T_cr is None for rec in tracker.records[27:])
+    assert len(tracker.records) == 32
     if young_map_resets:
         assert first_blank.reset and tracker.generation == 1
-        assert all(r.state == TrackingState.NOT_INITIALIZED for r in results[32:])
+        assert all(r.state == TrackingState.NOT_INITIALIZED for r in results[24:])
         assert tracker.map.n_keyframes() == 0 and tracker.can_recover
     else:
         assert not any(r.reset for r in results) and tracker.generation == 0
-        assert all(r.state == TrackingState.LOST for r in results[32:])
+        assert all(r.state == TrackingState.LOST for r in results[24:])
         assert not tracker.can_recover  # no relocaliser: the caller may skip the remaining frames
         assert tracker.map.n_keyframes() >= 2
 

@@ -165,3 +165,27 @@ def test_tracks_from_consecutive_real_frames():
     assert linked[image < 4].mean() > 0.5
     pairs = np.unique(np.stack([track[linked], image[linked]], 1), axis=0)
     assert len(pairs) == linked.sum()  # one descriptor per image in every track
+
+
+def test_hgcn_vocabulary_on_float_descriptors(tmp_path):
+    from orbslam_hgcn.vocabulary import load_vocabulary
+    from orbslam_hgcn.vocabulary.hgcn_vocab import train_hgcn_vocabulary
+
+    # SIFT-like 128-D float descriptors around 10 centres, 30 "images"; 40 words: no word
+    # may mix two centres' descriptors (k-means seeds start from random points, so fewer
+    # words than centres could merge some).
+    rng = np.random.default_rng(4)
+    centres = rng.normal(0, 5, (10, 128)).astype(np.float32)
+    truth = rng.integers(0, 10, 3000)
+    desc = centres[truth] + rng.normal(0, 0.3, (3000, 128)).astype(np.float32)
+    cfg = HgcnTrainConfig(n_words=40, hidden_dim=8, min_steps=10, batch_size=64, n_coarse=4, label_fraction=0.2)
+    vocab = train_hgcn_vocabulary(desc, np.arange(3000) // 100, cfg, progress=False)
+    assert vocab.descriptor_type == "float" and vocab.metadata.descriptor_dim == 128
+    words = vocab.transform_words(desc)
+    purity = sum(np.bincount(truth[words == w]).max() for w in np.unique(words)) / len(words)
+    assert purity == 1.0 and len(np.unique(words)) > 30
+    vocab.save(tmp_path / "sift.npz")
+    back = load_vocabulary(tmp_path / "sift.npz")
+    np.testing.assert_array_equal(back.transform_words(desc[:100]), words[:100])
+    with pytest.raises(ValueError):
+        vocab.transform_words(desc.astype(np.uint8))

@@ -177,3 +177,30 @@ def test_config_validation(tmp_path):
     bad.write_text("hgcn:\n  n_wrods: 100\n")
     assert cli.main(["vocab", "train", "--kind", "hgcn", "--images", str(vf.TUM_RGB), "--out",
                      str(tmp_path / "x.npz"), "--config", str(bad)]) == 2
+
+
+def test_image_sources(tmp_path):
+    import shutil
+
+    from orbslam_hgcn.errors import DatasetError
+    from orbslam_hgcn.vocabulary.train import open_image_source, select_images
+
+    nested = tmp_path / "a" / "b"
+    nested.mkdir(parents=True)
+    frames = sorted(vf.TUM_RGB.glob("*.png"))[:3]
+    shutil.copy(frames[0], tmp_path / "a" / "x.png")
+    shutil.copy(frames[1], nested / "y.png")
+    src = open_image_source(tmp_path)  # a plain folder: images found recursively
+    assert src.n == 2 and src.load(1).ndim == 2 and src.load(1).dtype == np.uint8
+    tum = open_image_source(vf.TUM_RGB.parent)  # a TUM sequence through the dataset reader
+    assert tum.n == len(list(vf.TUM_RGB.glob("*.png"))) and "(tum)" in tum.name
+    # 21 images, 5 evenly spread: items 0, 5, 10, 15, 20.
+    assert select_images([src, tum], 5) == [(0, 0), (1, 3), (1, 8), (1, 13), (1, 18)]
+    (tmp_path / "notes.txt").write_text("x")
+    for bad in (tmp_path / "missing", tmp_path / "notes.txt"):
+        with pytest.raises(DatasetError, match=str(bad)):
+            open_image_source(bad)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(DatasetError, match="no images found"):
+        open_image_source(empty)

@@ -86,7 +86,10 @@ def _bow_matches(m: Map, kf1: KeyFrame, kf2: KeyFrame, ratio: float) -> np.ndarr
 
 
 def _point_data(m: Map, kf1: KeyFrame, kf2: KeyFrame, i1: np.ndarray, i2: np.ndarray):
-    """Camera-frame points, keypoints and level information of matched slots i1 / i2."""
+    """Data of the matches (slot i1 of kf1, slot i2 of kf2), i1 / i2: (M,) int.
+
+    Returns ((M, 3) kf1's points in camera 1, (M, 3) kf2's points in camera 2, (M, 2) and
+    (M, 2) their undistorted keypoints, (M,) and (M,) their level variances sigma^2)."""
     kp1, kp2 = kf1.keypoints, kf2.keypoints
     P1 = m.positions(kf1.point_ids[i1])
     P2 = m.positions(kf2.point_ids[i2])

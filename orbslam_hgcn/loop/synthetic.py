@@ -1,5 +1,6 @@
 """Synthetic keyframe maps with known ground truth, for loop-closing and relocalisation
-tests and benchmarks (no images: keypoints, descriptors and BoW vectors are made directly).
+tests and benchmarks (no images: keypoints, descriptors and BoW vectors are made directly),
+and a circular camera path (TUM file) to render a small loop with the scene renderer.
 
 The scene is a ring of points on the inside of a vertical cylinder; cameras move on a
 smaller circle looking outwards, so a run of keyframes that goes round more than once
@@ -26,6 +27,7 @@ import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -34,6 +36,7 @@ from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import inv_S, inv_T
 from orbslam_hgcn.map import Frame, KeyFrame, Map
+from orbslam_hgcn.trajectory import Trajectory, write_tum
 from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector
 
 log = logging.getLogger(__name__)
@@ -272,3 +275,20 @@ def duplicate_count(rm: RingMap, kf_subset: list[KeyFrame] | None = None) -> int
             if sid >= 0 and not m.point(int(pid)).bad:
                 owners.setdefault(sid, set()).add(int(pid))
     return sum(len(v) > 1 for v in owners.values())
+
+
+def circle_ground_truth(path: Path, radius: float = 1.2, turns: float = 1.3, seconds: float = 20.0,
+                        height: float = 0.5) -> Path:
+    """Write a TUM trajectory (100 Hz) circling the origin at ``radius`` and ``height`` m,
+    looking at the origin, ``turns`` turns in ``seconds``; returns ``path``."""
+    t = np.arange(0.0, seconds + 1e-9, 0.01)
+    a = 2 * np.pi * turns * t / seconds
+    poses = np.tile(np.eye(4), (len(t), 1, 1))
+    c = np.stack([radius * np.cos(a), radius * np.sin(a), np.full_like(a, height)], axis=1)
+    z = -c / np.linalg.norm(c, axis=1, keepdims=True)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    poses[:, :3, 0], poses[:, :3, 1], poses[:, :3, 2], poses[:, :3, 3] = x, np.cross(z, x), z, c
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_tum(path, Trajectory(1000.0 + t, poses))
+    return path

@@ -11,7 +11,8 @@ Sec. VI; LocalMapping::Run of ORB-SLAM2), in its order:
 4. duplicate fusion with the neighbourhood (:mod:`orbslam_hgcn.mapping.fuse`);
 5. local bundle adjustment (gtsam, via :mod:`orbslam_hgcn.backend`): the keyframe and its
    covisible keyframes free, every other keyframe seeing their points fixed, Huber
-   kernel, 5 iterations, outliers out, 10 more, wall time bounded;
+   kernel, 5 iterations, outliers out, 10 more, CPU time bounded, and stopped early when
+   ``should_abort`` says so (ORB-SLAM's abort flag, raised when a new keyframe waits);
 6. redundant keyframe culling.
 
 Stage timings of every call are kept in :attr:`LocalMapper.timings` (milliseconds).
@@ -22,6 +23,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -42,6 +44,8 @@ class LocalMapper:
 
     vocabulary: optional (``transform(desc) -> (BowVector, FeatureVector)``); keyframes
     then get BoW vectors and triangulation matches features under one vocabulary node.
+    should_abort: polled between local BA iterations; True stops the BA (a threaded system
+    raises it when the tracker queues a new keyframe). Never, when None.
     """
 
     def __init__(
@@ -50,10 +54,12 @@ class LocalMapper:
         config: LocalMappingConfig | None = None,
         backend: BackendConfig | None = None,
         vocabulary: Any = None,
+        should_abort: Callable[[], bool] | None = None,
     ) -> None:
         self.config = config or LocalMappingConfig()
         self.backend = backend or BackendConfig()
         self.vocabulary = vocabulary
+        self.should_abort = should_abort
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.counts: dict[str, int] = defaultdict(int)
         self.reset(m)
@@ -129,9 +135,12 @@ class LocalMapper:
         def over_budget() -> bool:
             return budget > 0 and time.thread_time() > deadline
 
+        def stop() -> bool:
+            return over_budget() or (self.should_abort is not None and bool(self.should_abort()))
+
         res = local_bundle_adjustment(
             w.T_cw, w.fixed, w.points, w.obs_kf, w.obs_pt, w.uv, w.inv_sigma2, w.K, self.backend,
-            should_stop=over_budget,
+            should_stop=stop,
         )  # fmt: skip
         self.counts["ba_budget_hit"] += int(over_budget())
         erased = apply_window(m, w, res.T_cw, res.points, res.outlier)

@@ -134,7 +134,9 @@ class KeyframeDatabase:
         scores = np.bincount(inv, weights=np.minimum(kf_a, q_a), minlength=len(uniq))
         return uniq, common, scores
 
-    def query(self, bow: BowVector, max_results: int | None = None, exclude: Collection[int] = ()) -> list[tuple[int, float]]:
+    def query(
+        self, bow: BowVector, max_results: int | None = None, exclude: Collection[int] = ()
+    ) -> list[tuple[int, float]]:
         """Plain DBoW2 query: (kf_id, L1 score) of keyframes sharing a word, best first."""
         ids, _, scores = self.shared(bow, exclude)
         order = np.lexsort((ids, -scores))

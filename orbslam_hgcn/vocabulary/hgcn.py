@@ -109,7 +109,9 @@ class HGCNLayer(nn.Module):
         h = hyp.proj(hyp.expmap0(torch.sparse.mm(adj, hyp.logmap0(h, c_in)), c_in), c_in)
         return hyp.proj(hyp.expmap0(self.act(hyp.logmap0(h, c_in)), c_out), c_out)
 
-    def forward_tangent(self, v: torch.Tensor, adj: torch.Tensor, c_in: torch.Tensor, c_out: torch.Tensor) -> torch.Tensor:
+    def forward_tangent(
+        self, v: torch.Tensor, adj: torch.Tensor, c_in: torch.Tensor, c_out: torch.Tensor
+    ) -> torch.Tensor:
         """:meth:`forward` on tangent vectors at the origin: v = log_0(x) in, log_0(output)
         out. Equal to ``log_0(forward(exp_0(v)))`` (``log_0(proj(exp_0(s)))`` is the norm
         cap :func:`~orbslam_hgcn.vocabulary.hyperbolic.clip_tangent`) with half the
@@ -125,7 +127,10 @@ class HGCN(nn.Module):
     def __init__(self, d_in: int, hidden: int, n_classes: int, cfg: HgcnTrainConfig) -> None:
         super().__init__()
         self.layers = nn.ModuleList(
-            [HGCNLayer(d_in, hidden, cfg.dropout, cfg.activation), HGCNLayer(hidden, hidden, cfg.dropout, cfg.activation)]
+            [
+                HGCNLayer(d_in, hidden, cfg.dropout, cfg.activation),
+                HGCNLayer(hidden, hidden, cfg.dropout, cfg.activation),
+            ]
         )
         self.raw_c = nn.Parameter(torch.full((3,), _softplus_inv(cfg.init_curvature)))
         self.prototypes = nn.Parameter(torch.randn(n_classes, hidden) * 1e-2)  # tangent vectors at 0

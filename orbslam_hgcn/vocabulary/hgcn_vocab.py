@@ -136,7 +136,8 @@ class HGCNVocabulary(Vocabulary):
 
     @classmethod
     def _from_state(cls, arrays: dict[str, np.ndarray], metadata: VocabularyMetadata, path: Path) -> HGCNVocabulary:
-        names = ("pca_mean", "pca_components", "centroids", "coarse_centroids", "word_coarse", "ivf_centroids", "nprobe")
+        names = ("pca_mean", "pca_components", "centroids", "coarse_centroids", "word_coarse", "ivf_centroids",
+                 "nprobe")
         missing = [n for n in names if n not in arrays]
         require(not missing, path, f"missing arrays {missing}")
         mean, comp, cent = arrays["pca_mean"], arrays["pca_components"], arrays["centroids"]
