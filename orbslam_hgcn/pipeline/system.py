@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,7 @@ from orbslam_hgcn.config import (
     section_from_yaml,
 )
 from orbslam_hgcn.datasets import Sequence
+from orbslam_hgcn.datasets.base import FrameRecord
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.loop.closer import LoopCloser
@@ -132,6 +134,9 @@ class System:
         self.timings: dict[str, list[float]] = {"extraction": [], "tracking": [], "tracking_cpu": [], "frame": []}
         self.events: list[dict[str, Any]] = []
         self.n_resets = 0
+        # Called as observer(system, record, result) after every frame of :meth:`run`
+        # (visualisation, progress reporting); they must not change the map.
+        self.observers: list[Callable[[System, FrameRecord, TrackResult], None]] = []
 
     # --- one frame -----------------------------------------------------------------------
     def _mapping_idle(self) -> bool:
@@ -195,6 +200,8 @@ class System:
                 rec = sequence[i]
                 t_frame = time.perf_counter()
                 result = self.process(rec.image, rec.timestamp, rec.index)
+                for observe in self.observers:
+                    observe(self, rec, result)
                 done += 1
                 bar.update(1)
                 dt = time.perf_counter() - t_frame
