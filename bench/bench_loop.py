@@ -1,6 +1,10 @@
 """Loop closing and relocalisation on synthetic sequences: loops found, accuracy, timings.
 
-Sequences (rendered once into the cache folder, default ~/.cache/orbslam_hgcn/loop_bench):
+Sequences (rendered once into the cache folder, default ~/.cache/orbslam_hgcn/loop_bench),
+with Gaussian sensor noise (sigma 2 grey levels) and a 10% exposure drift by default
+(``--noise``, ``--exposure-drift``; 0 and 0 give clean renders, on which the odometry
+drifts so little that the tracker can re-find the old map points by itself; the revisit
+keyframes are then covisible with the old ones and there is no loop left to detect):
 
 * ``fr3_replay``: the camera path of TUM fr3 long_office_household (Sturm et al., IROS
   2012) replayed in a synthetic office, full length (2613 frames at 30 fps); the camera
@@ -67,11 +71,18 @@ SEQUENCES = {
 }
 
 
-def ensure(name: str, cache: Path) -> Path:
+def ensure(name: str, cache: Path, noise: float = 0.0, drift: float = 0.0) -> Path:
+    """The rendered sequence ``name`` in ``cache`` (rendered on first use), with Gaussian
+    sensor noise ``noise`` (grey levels) and exposure drift ``drift``; the folder name
+    carries both when they are not zero."""
     if name == "circle":
         gt = circle_ground_truth(cache / CIRCLE_GT)
-        return render_sequence(cache / name, SynthOptions(trajectory="replay", gt=str(gt)), progress=True)
-    return render_sequence(cache / name, SEQUENCES[name], progress=True)
+        opts = SynthOptions(trajectory="replay", gt=str(gt))
+    else:
+        opts = SEQUENCES[name]
+    folder = name if noise == 0 and drift == 0 else f"{name}_noise{noise:g}_drift{drift:g}"
+    opts = dataclasses.replace(opts, noise=noise, exposure_drift=drift)
+    return render_sequence(cache / folder, opts, progress=True)
 
 
 class Spliced(Sequence):
@@ -215,6 +226,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vocab-hgcn", default="hgcn")
     ap.add_argument("--vocab-orb", default="orb")
     ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--noise", type=float, default=2.0,
+                    help="sensor noise sigma in grey levels of every sequence (default 2; 0: clean renders)")
+    ap.add_argument("--exposure-drift", type=float, default=0.1,
+                    help="relative exposure gain swing of every sequence (default 0.1)")
     ap.add_argument("--json", type=Path, default=None, help="also write every figure to this JSON file")
     ap.add_argument("--out", type=Path, default=None, help="write each run's trajectories and stats.json under this folder")
     args = ap.parse_args(argv)
@@ -222,7 +237,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("orbslam_hgcn.loop").setLevel(logging.INFO)
     vocabs = {"hgcn": args.vocab_hgcn, "orb": args.vocab_orb}
     results: dict[str, dict] = {}
-    main_seq = open_sequence("tum", ensure("fr3_replay", args.cache))
+    look = (args.noise, args.exposure_drift)
+    print(f"sequences rendered with sensor noise {args.noise:g} grey levels and exposure drift {args.exposure_drift:g}")
+    main_seq = open_sequence("tum", ensure("fr3_replay", args.cache, *look))
     gt = main_seq.ground_truth
     for part in args.parts:
         if part in ("hgcn", "orb"):
@@ -232,17 +249,17 @@ def main(argv: list[str] | None = None) -> int:
             results[part] = r = run(main_seq, vocabs["hgcn"], False, args.max_frames, sub(args.out, part))
             print_run("[noloop] fr3_replay, loop closing off", r, gt)
         elif part == "false":
-            seq = open_sequence("tum", ensure("fr3_repeated", args.cache))
+            seq = open_sequence("tum", ensure("fr3_repeated", args.cache, *look))
             for kind in ("hgcn", "orb"):
                 out = sub(args.out, f"false_{kind}")
                 results[f"false_{kind}"] = r = run(seq, vocabs[kind], True, args.max_frames, out)
                 print_run(f"[false] fr3_repeated (repeated texture, no revisit), {kind} vocabulary", r, seq.ground_truth)
         elif part == "circle":
-            seq = open_sequence("tum", ensure("circle", args.cache))
+            seq = open_sequence("tum", ensure("circle", args.cache, *look))
             results[part] = r = run(seq, vocabs["hgcn"], True, args.max_frames, sub(args.out, part))
             print_run("[circle] small loop (1.3 turns round the desk), hgcn vocabulary", r, seq.ground_truth)
         elif part == "reloc":
-            other = open_sequence("tum", ensure("elsewhere", args.cache))
+            other = open_sequence("tum", ensure("elsewhere", args.cache, *look))
             seq = Spliced(main_seq, other, *SPLICE)
             results[part] = r = run(seq, vocabs["hgcn"], True, args.max_frames, sub(args.out, part))
             print_run(f"[reloc] fr3_replay with frames {SPLICE[0]}-{SPLICE[1] - 1} from another room", r, gt)

@@ -257,7 +257,8 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "run",
         help="run monocular SLAM over a dataset; write trajectories and stats",
-        description="Track and map a sequence (tracking and local mapping in order) and write "
+        description="Track and map a sequence (local mapping and loop closing in worker threads, or in "
+        "order with --sequential) and write "
         "KeyFrameTrajectory.txt, CameraTrajectory.txt (TUM format) and stats.json; prints the "
         "ATE after Sim(3) alignment when the dataset has ground truth.",
     )
@@ -274,6 +275,17 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
                    "(default hgcn; needed for loop closing and relocalisation)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from orbslam_hgcn.viz.sinks import add_rerun_argument
+
+    add_rerun_argument(p)
+    p.add_argument("--save-map", default=None, metavar="FILE", help="write the map at the end (.npz)")
+    p.add_argument("--load-map", default=None, metavar="FILE",
+                   help="start from a saved map (relocalise on it first); the vocabulary defaults to the map's")
+    p.add_argument("--localization", action="store_true",
+                   help="with --load-map: track against the map without changing it (no new keyframes)")
+    p.add_argument("--sequential", action="store_true",
+                   help="run local mapping and loop closing in order after each frame (reproducible), "
+                   "instead of in worker threads")
     p.set_defaults(func=_run_run)
 
 
@@ -282,7 +294,9 @@ def _run_run(args: argparse.Namespace) -> int:
 
     report = run_dataset(
         args.path, args.out, kind=args.dataset, config=args.config, max_frames=args.max_frames,
-        loop_closing=not args.no_loop, progress=not args.no_progress, vocab=args.vocab,
+        loop_closing=not args.no_loop, progress=not args.no_progress, vocab=args.vocab, rerun=args.rerun,
+        load_map=args.load_map, save_map=args.save_map, localization=args.localization,
+        sequential=args.sequential,
     )
     for line in format_report(report):
         print(line)
@@ -354,3 +368,75 @@ def _run_vocab_info(args: argparse.Namespace) -> int:
     vocab = load_vocabulary(args.file)
     print(vocab.metadata.describe())
     return 0
+
+
+@subcommand
+def _add_compare(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "compare",
+        help="run SLAM N times per vocabulary (ORB baseline, HGCN) and compare ATE, loops, fps",
+        description="Run the whole system (loop closing on) --runs times with each vocabulary and "
+        "summarise keyframe ATE after Sim(3) alignment (median/min/max), loops closed, frames lost "
+        "and fps per vocabulary; write compare.md, compare.json and compare_ate.png into --out.",
+    )
+    p.add_argument("path", help="dataset folder (or video file)")
+    p.add_argument("--dataset", choices=("tum", "euroc", "kitti", "folder", "video"), default=None,
+                   help="dataset kind (default: detected from the folder)")
+    p.add_argument("--config", default=None, help="camera/stage YAML or a shipped camera name, as for run")
+    p.add_argument("--runs", type=int, default=5, help="runs per vocabulary (default 5)")
+    p.add_argument("--vocabs", nargs="+", default=["orb", "hgcn"], metavar="VOCAB",
+                   help="vocabularies to compare: orb, hgcn or files (default: orb hgcn)")
+    p.add_argument("--out", required=True, help="output folder (one sub-folder per run)")
+    p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames per run")
+    p.add_argument("--sequential", action="store_true",
+                   help="run local mapping and loop closing in order after each frame (identical runs)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=_run_compare)
+
+
+def _run_compare(args: argparse.Namespace) -> int:
+    from orbslam_hgcn.pipeline.compare import describe_run, format_markdown, run_comparison
+
+    comp = run_comparison(
+        args.path, args.out, kind=args.dataset, config=args.config, runs=args.runs, vocabs=args.vocabs,
+        max_frames=args.max_frames, progress=not args.no_progress, sequential=args.sequential,
+        on_run=lambda r: print(describe_run(r)),
+    )
+    print(format_markdown(comp))
+    for path in comp.paths.values():
+        print(f"wrote {path}")
+    return 1 if any(not r.ok for r in comp.runs) else 0
+
+
+@subcommand
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    from orbslam_hgcn.viz.sinks import add_rerun_argument
+
+    p = sub.add_parser(
+        "demo",
+        help="render the synthetic loop (cached), run SLAM with the HGCN vocabulary, then the ORB baseline",
+        description="Render the built-in synthetic loop sequence once into a cache folder, run SLAM with "
+        "the shipped HGCN vocabulary and print its ATE, run the ORB-tree baseline on the same sequence and "
+        "print the comparison. The first run is recorded for rerun in OUT/demo.rrd.",
+    )
+    p.add_argument("--out", default="demo_out", help="output folder (default ./demo_out)")
+    p.add_argument("--frames", type=int, default=None,
+                   help="a shorter loop of N frames (default 900; 300 or more make a full lap)")
+    p.add_argument("--runs", type=int, default=1, help="runs per vocabulary (default 1)")
+    p.add_argument("--cache", default=None,
+                   help="cache folder of rendered sequences (default $ORBSLAM_HGCN_CACHE or ~/.cache/orbslam_hgcn)")
+    add_rerun_argument(p)
+    p.add_argument("--no-rerun", action="store_true", help="record no rerun visualisation")
+    p.add_argument("--sequential", action="store_true",
+                   help="run local mapping and loop closing in order after each frame instead of in threads")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=_run_demo)
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    from orbslam_hgcn.pipeline.demo import run_demo
+
+    rerun = [] if args.no_rerun else args.rerun
+    comp = run_demo(out=args.out, frames=args.frames, runs=args.runs, cache=args.cache, rerun=rerun,
+                    progress=not args.no_progress, sequential=args.sequential)
+    return 1 if any(not r.ok for r in comp.runs) else 0

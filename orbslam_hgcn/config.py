@@ -583,3 +583,17 @@ class RelocalizationConfig:
     narrow_max_dist: int = 64
     narrow_min_inliers: int = 30
     min_inliers: int = 50  # inliers to accept the relocalisation
+
+
+@dataclasses.dataclass(frozen=True)
+class ThreadsConfig:
+    """How the system runs its stages (YAML section ``threads``): in order on the calling
+    thread, or local mapping and loop closing in worker threads as ORB-SLAM does."""
+
+    # True: tracking, local mapping and loop closing in order, one frame at a time; results
+    # are identical on every run. False: local mapping and loop closing in worker threads.
+    # (``orbslam-hgcn run`` sets it from its --sequential flag: threaded by default.)
+    sequential: bool = True
+    # Threaded only: solve local and global BA in child processes. gtsam keeps the GIL
+    # while it iterates, so a BA solved in a thread of this process stalls tracking.
+    process_solver: bool = True

@@ -24,7 +24,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 from orbslam_hgcn.config import HgcnTrainConfig, TreeTrainConfig
 from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence

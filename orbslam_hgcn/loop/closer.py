@@ -10,7 +10,9 @@ it does.
 The map must stay still while a loop is corrected. ``pause_mapping`` (optional) is called
 with True before the correction and False after it, so a threaded system can stop local
 mapping there (ORB-SLAM RequestStop / Release); run in order, local mapping is idle anyway.
-The map lock is held during the correction itself, not during the global BA.
+The map lock is held during detection, the similarity check and the correction itself,
+not while the global BA is solved (a ``solver``, :mod:`orbslam_hgcn.backend.solver`, may
+solve it in another process); local mapping is paused again while its result is written.
 """
 
 from __future__ import annotations
@@ -70,7 +72,8 @@ class LoopCloser:
 
     database: the keyframe database (shared with relocalisation); vocabulary: optional,
     computes a keyframe's BoW vectors when local mapping has not (``transform(desc) ->
-    (BowVector, FeatureVector)``); pause_mapping: optional callback (see module docs).
+    (BowVector, FeatureVector)``); pause_mapping: optional callback (see module docs);
+    solver: runs the global BA (default: in the calling thread).
     """
 
     def __init__(
@@ -81,7 +84,9 @@ class LoopCloser:
         backend: BackendConfig | None = None,
         vocabulary: Any = None,
         pause_mapping: Callable[[bool], None] | None = None,
+        solver: Any = None,
     ) -> None:
+        self.solver = solver
         self.config = config or LoopClosingConfig()
         self.backend = backend or BackendConfig()
         self.vocabulary = vocabulary
@@ -104,6 +109,19 @@ class LoopCloser:
     # --- the entry -----------------------------------------------------------------------
     def process(self, kf: KeyFrame) -> LoopEvent | None:
         """Index ``kf`` and look for a loop; close it when found. Returns the loop, or None."""
+        m = self.map
+        with m.lock:
+            found = self._find(kf)
+        if found is None:
+            return None
+        try:
+            return self._close(kf, *found)
+        finally:
+            m.set_erase(kf.id)
+
+    def _find(self, kf: KeyFrame) -> tuple[LoopMatch, dict[str, float]] | None:
+        """Index ``kf``, detect and verify a loop: (match, step times) or None. With a
+        match, ``kf`` is left protected from culling (the caller releases it)."""
         m, cfg = self.map, self.config
         if kf.bad:
             return None
@@ -118,6 +136,7 @@ class LoopCloser:
             return None
         t0 = time.perf_counter()
         m.set_not_erase(kf.id)
+        found = None
         try:
             self.detector.purge()
             det = self.detector.detect(kf)
@@ -143,9 +162,11 @@ class LoopCloser:
             self.timings["sim3"].append(1000.0 * (t2 - t1))
             if match is None:
                 return None
-            return self._close(kf, match, {"detect": 1000.0 * (t1 - t0), "sim3": 1000.0 * (t2 - t1)})
+            found = match, {"detect": 1000.0 * (t1 - t0), "sim3": 1000.0 * (t2 - t1)}
+            return found
         finally:
-            m.set_erase(kf.id)
+            if found is None:
+                m.set_erase(kf.id)
 
     # --- correction ----------------------------------------------------------------------
     def _close(self, kf: KeyFrame, match: LoopMatch, time_ms: dict[str, float]) -> LoopEvent:
@@ -162,7 +183,8 @@ class LoopCloser:
         time_ms["correct"] = 1000.0 * (t1 - t0)
         gba = None
         if cfg.global_ba:
-            gba = run_global_ba(m, cfg.global_ba_iterations, self.backend, cfg.global_ba_time_budget_s)
+            gba = run_global_ba(m, cfg.global_ba_iterations, self.backend, cfg.global_ba_time_budget_s,
+                                solver=self.solver, pause_mapping=self.pause_mapping)  # fmt: skip
             time_ms["global_ba"] = 1000.0 * (time.perf_counter() - t1)
         self.detector.last_loop_kf_id = kf.id
         self.detector.filter.clear()

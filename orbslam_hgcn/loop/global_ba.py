@@ -6,7 +6,10 @@ The problem is cut from the map (every good keyframe and point, the origin keyfr
 and solved with gtsam without holding the map lock. Writing back, the keyframes of the
 problem take their optimised pose; a keyframe added meanwhile follows its spanning-tree
 parent (its pose relative to the parent is kept), and a point added meanwhile follows its
-reference keyframe (its position in that camera is kept).
+reference keyframe (its position in that camera is kept). A ``solver``
+(:mod:`orbslam_hgcn.backend.solver`) may run the optimisation in another process; with
+``pause_mapping``, local mapping is held still while the result is written back (ORB-SLAM
+stops local mapping there), so that a local BA solved meanwhile cannot overwrite it.
 """
 
 from __future__ import annotations
@@ -15,13 +18,15 @@ import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from orbslam_hgcn.backend.bundle_adjustment import global_bundle_adjustment
+from orbslam_hgcn.backend.solver import InProcessSolver, as_problem
 from orbslam_hgcn.config import BackendConfig
 from orbslam_hgcn.map import Map
-from orbslam_hgcn.map.window import apply_window, global_window
+from orbslam_hgcn.backend.bundle_adjustment import BAResult
+from orbslam_hgcn.map.window import BAWindow, apply_window, global_window
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +47,8 @@ def run_global_ba(
     backend: BackendConfig | None = None,
     time_budget_s: float = 0.0,
     should_stop: Callable[[], bool] | None = None,
+    solver: Any = None,
+    pause_mapping: Callable[[bool], None] | None = None,
 ) -> GlobalBAResult:
     """Global BA of the whole map (bounded by ``iterations`` and ``time_budget_s``)."""
     cfg = dataclasses.replace(backend or BackendConfig(), ba_time_budget_s=time_budget_s)
@@ -49,10 +56,22 @@ def run_global_ba(
         w = global_window(m)
     if w.n_observations == 0 or not (~w.fixed).any():
         return GlobalBAResult()
-    res = global_bundle_adjustment(
-        w.T_cw, w.fixed, w.points, w.obs_kf, w.obs_pt, w.uv, w.inv_sigma2, w.K,
-        iterations=iterations, config=cfg, should_stop=should_stop,
-    )  # fmt: skip
+    solver = solver if solver is not None else InProcessSolver()
+    problem = as_problem(w.T_cw, w.fixed, w.points, w.obs_kf, w.obs_pt, w.uv, w.inv_sigma2, w.K)
+    res = solver.global_ba(problem, iterations, cfg, should_stop)
+    if pause_mapping is not None:
+        pause_mapping(True)
+    try:
+        out = _write_back(m, w, res)
+    finally:
+        if pause_mapping is not None:
+            pause_mapping(False)
+    log.info("global BA: %d keyframes, %d points; propagated to %d keyframes, %d points created meanwhile",
+             out.n_keyframes, out.n_points, out.n_keyframes_propagated, out.n_points_propagated)  # fmt: skip
+    return out
+
+
+def _write_back(m: Map, w: BAWindow, res: BAResult) -> GlobalBAResult:
     out = GlobalBAResult(len(w.kf_ids), len(w.point_ids))
     with m.lock:
         in_window = set(w.kf_ids.tolist())
@@ -88,6 +107,4 @@ def run_global_ba(
         if moved:
             m.update_points(np.array(moved, dtype=np.int64), descriptors=False)
         out.n_points_propagated = len(moved)
-    log.info("global BA: %d keyframes, %d points; propagated to %d keyframes, %d points created meanwhile",
-             out.n_keyframes, out.n_points, out.n_keyframes_propagated, out.n_points_propagated)  # fmt: skip
     return out

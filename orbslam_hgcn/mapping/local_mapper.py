@@ -15,6 +15,11 @@ Sec. VI; LocalMapping::Run of ORB-SLAM2), in its order:
    ``should_abort`` says so (ORB-SLAM's abort flag, raised when a new keyframe waits);
 6. redundant keyframe culling.
 
+Each step holds the map lock; local BA holds it only to cut its window from the map and
+to write the results back (keyframes and points that became bad meanwhile are skipped),
+not while it is solved, which a ``solver`` may do in another process
+(:mod:`orbslam_hgcn.backend.solver`).
+
 Stage timings of every call are kept in :attr:`LocalMapper.timings` (milliseconds).
 """
 
@@ -28,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from orbslam_hgcn.backend.bundle_adjustment import local_bundle_adjustment
+from orbslam_hgcn.backend.solver import InProcessSolver, as_problem
 from orbslam_hgcn.config import BackendConfig, LocalMappingConfig
 from orbslam_hgcn.map import KeyFrame, Map
 from orbslam_hgcn.map.window import apply_window, local_window
@@ -46,6 +51,8 @@ class LocalMapper:
     then get BoW vectors and triangulation matches features under one vocabulary node.
     should_abort: polled between local BA iterations; True stops the BA (a threaded system
     raises it when the tracker queues a new keyframe). Never, when None.
+    solver: runs local BA (``local_ba(problem, config, cpu_budget_s, should_stop)``);
+    default: in the calling thread. ``in_ba`` is True while a local BA runs.
     """
 
     def __init__(
@@ -55,11 +62,14 @@ class LocalMapper:
         backend: BackendConfig | None = None,
         vocabulary: Any = None,
         should_abort: Callable[[], bool] | None = None,
+        solver: Any = None,
     ) -> None:
         self.config = config or LocalMappingConfig()
         self.backend = backend or BackendConfig()
         self.vocabulary = vocabulary
         self.should_abort = should_abort
+        self.solver = solver if solver is not None else InProcessSolver()
+        self.in_ba = False
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.counts: dict[str, int] = defaultdict(int)
         self.reset(m)
@@ -74,14 +84,14 @@ class LocalMapper:
         or None when it was culled meanwhile."""
         t_all, c_all = time.perf_counter(), time.process_time()
         m, cfg = self.map, self.config
-        with self._timed("insert"):
+        with self._timed("insert"), m.lock:
             self._insert(kf)
-        with self._timed("cull_points"):
+        with self._timed("cull_points"), m.lock:
             self.recent, n_cull = cull_recent_points(m, self.recent, kf.id, cfg)
-        with self._timed("triangulate"):
+        with self._timed("triangulate"), m.lock:
             new = create_new_points(m, kf, cfg)
             self.recent = np.concatenate([self.recent, new])
-        with self._timed("fuse"):
+        with self._timed("fuse"), m.lock:
             fused = search_in_neighbors(m, kf, cfg)
         ba_ms = ba_cpu_ms = 0.0
         if cfg.local_ba and m.n_keyframes() > 2 and not kf.bad:
@@ -93,7 +103,7 @@ class LocalMapper:
         self.timings["local_ba_cpu"].append(ba_cpu_ms)
         culled: list[int] = []
         if cfg.keyframe_culling and not kf.bad:
-            with self._timed("cull_keyframes"):
+            with self._timed("cull_keyframes"), m.lock:
                 culled = redundant_keyframes(m, kf, cfg)
         self.timings["total"].append(1000.0 * (time.perf_counter() - t_all))
         self.timings["total_cpu"].append(1000.0 * (time.process_time() - c_all))
@@ -129,20 +139,16 @@ class LocalMapper:
             w = local_window(m, kf.id, self.config.ba_max_keyframes or None)
         if w.n_observations == 0 or not (~w.fixed).any():
             return
-        budget = self.config.ba_cpu_budget_s
-        deadline = time.thread_time() + budget
-
-        def over_budget() -> bool:
-            return budget > 0 and time.thread_time() > deadline
-
-        def stop() -> bool:
-            return over_budget() or (self.should_abort is not None and bool(self.should_abort()))
-
-        res = local_bundle_adjustment(
-            w.T_cw, w.fixed, w.points, w.obs_kf, w.obs_pt, w.uv, w.inv_sigma2, w.K, self.backend,
-            should_stop=stop,
-        )  # fmt: skip
-        self.counts["ba_budget_hit"] += int(over_budget())
+        problem = as_problem(w.T_cw, w.fixed, w.points, w.obs_kf, w.obs_pt, w.uv, w.inv_sigma2, w.K)
+        self.in_ba = True
+        try:
+            res, budget_hit = self.solver.local_ba(
+                problem, self.backend, self.config.ba_cpu_budget_s, self.should_abort
+            )
+        finally:
+            self.in_ba = False
+        self.counts["ba_budget_hit"] += int(budget_hit)
+        self.counts["ba_aborted"] += int(self.should_abort is not None and bool(self.should_abort()))
         erased = apply_window(m, w, res.T_cw, res.points, res.outlier)
         self.counts["ba_outliers_erased"] += erased
         self.counts["ba_keyframes_free"] += int((~w.fixed).sum())

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ from orbslam_hgcn.errors import OrbslamError, VocabularyError
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.pipeline.system import Configs, System
 from orbslam_hgcn.trajectory import Trajectory
+from orbslam_hgcn.viz.sinks import parse_rerun_arg
 
 log = logging.getLogger(__name__)
 
@@ -99,8 +101,27 @@ def run_dataset(
     loop_closing: bool = False,
     progress: bool = True,
     vocab: str | None = None,
+    rerun: Sequence[str] | None = None,
+    load_map: str | Path | None = None,
+    save_map: str | Path | None = None,
+    localization: bool = False,
+    sequential: bool = False,
 ) -> RunReport:
-    """Open a dataset, run the sequential system over it, write the results into ``out``."""
+    """Open a dataset, run the system over it, write the results into ``out``.
+
+    ``sequential``: local mapping and loop closing in order after each frame (reproducible
+    results) instead of in worker threads.
+
+    ``rerun``: the ``--rerun`` tokens (``["spawn"]``, ``["save", "FILE.rrd"]``,
+    ``["connect", "HOST:PORT"]``) to visualise the run in rerun as it goes
+    (:mod:`orbslam_hgcn.viz.live`); None: no visualisation.
+
+    ``load_map``: start from a saved map (:mod:`orbslam_hgcn.pipeline.mapfile`),
+    relocalising on it first; ``vocab`` then defaults to the map's vocabulary.
+    ``localization``: with ``load_map``, track without changing the map. ``save_map``:
+    write the map at the end (also listed in ``paths`` as ``map``).
+    """
+    rerun_sink = parse_rerun_arg(rerun) if rerun is not None else None
     if config is not None:
         p = Path(config)
         if not p.is_file() and not p.suffix and (CONFIG_DIR / f"{p.name}.yaml").is_file():
@@ -110,13 +131,30 @@ def run_dataset(
     sequence = open_sequence(kind, path, camera)
     if max_frames is not None and max_frames < 1:
         raise OrbslamError(f"--max-frames must be at least 1, found {max_frames}")
-    vocabulary = open_vocabulary(vocab, loop_closing)
+    if localization and load_map is None:
+        raise OrbslamError("--localization needs a saved map: --load-map FILE")
+    if load_map is not None:
+        from orbslam_hgcn.pipeline.mapfile import install_map, load_map as read_saved_map, map_vocabulary_name
+
+        vocab = vocab or map_vocabulary_name(load_map)  # by default the vocabulary the map was built with
+    vocabulary = open_vocabulary(vocab, loop_closing or load_map is not None)
     if not loop_closing:
         configs = dataclasses.replace(configs, loop_closing=dataclasses.replace(configs.loop_closing, enabled=False))
-    system = System(sequence.camera, configs, vocabulary=vocabulary)
+    system = System(sequence.camera, configs, vocabulary=vocabulary, sequential=sequential)
+    if load_map is not None:
+        install_map(system, read_saved_map(load_map, vocabulary).map, localization)
     log.info("%s: %d frames, camera %s", sequence.name, len(sequence), sequence.camera.name)
+    viz = None
+    if rerun_sink is not None:
+        from orbslam_hgcn.viz.live import attach_live_viz
+
+        viz = attach_live_viz(system, *rerun_sink, out=out, config=config, name=sequence.name)
     with logging_redirect_tqdm():
-        summary = system.run(sequence, max_frames, progress=progress)
+        try:
+            summary = system.run(sequence, max_frames, progress=progress)
+        finally:
+            if viz is not None:
+                viz.finish(system)
     ate: dict[str, Any] = {}
     if sequence.ground_truth is not None and len(sequence.ground_truth) >= 3:
         ate = {
@@ -129,8 +167,15 @@ def run_dataset(
         "interrupted": summary.interrupted,
         "wall_s": summary.wall_s,
         "ate_sim3": ate,
+        "map_file": {"loaded": str(load_map) if load_map else None, "localization": localization},
     }
+    if viz is not None:
+        extra["rerun"] = viz.summary()
     paths = system.save(out, extra)
+    if save_map is not None:
+        from orbslam_hgcn.pipeline.mapfile import save_system_map
+
+        paths["map"] = save_system_map(save_map, system, vocab)
     stats = system.stats()
     stats.update(extra)
     return RunReport(paths, stats, ate, summary.interrupted)

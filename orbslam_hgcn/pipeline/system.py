@@ -1,12 +1,19 @@
-"""The SLAM system run in order: extraction, tracking, local mapping, one frame at a time.
+"""The SLAM system: extraction and tracking on the calling thread, then local mapping and
+loop closing, in order or in worker threads.
 
-:class:`System` is the only place that knows every stage. In this sequential mode a
-keyframe made by the tracker is processed by the local mapper before the next frame, so
-local mapping is always idle when the tracker asks. The stages meet only here: the tracker
-returns its new keyframes, :meth:`System._on_keyframe` hands each to the local mapper and
-then to the loop closer, if one is plugged in (any object with ``process(keyframe)``);
-running a stage in a :class:`~orbslam_hgcn.pipeline.worker.Worker` replaces that call by a
-``submit``.
+:class:`System` is the only place that knows every stage. The stages meet only here: the
+tracker returns its new keyframes, :meth:`System._on_keyframe` hands each to a stage runner
+(:mod:`orbslam_hgcn.pipeline.stages`), which passes it to the local mapper and the keyframes
+it keeps to the loop closer, if one is plugged in (any object with ``process(keyframe)``).
+
+Sequential mode (``ThreadsConfig.sequential``, the default of the class): a keyframe is
+mapped and loop-checked before the next frame, so local mapping is always idle when the
+tracker asks, and a run gives the same result every time. Threaded mode (the default of
+``orbslam-hgcn run``): local mapping and loop closing run in worker threads as in ORB-SLAM,
+the tracker holds the map lock while it tracks a frame, and bundle adjustments are solved
+in child processes. Threads and processes live from the first frame to :meth:`System.close`,
+which :meth:`System.run` calls at its end (also on Ctrl-C or an error); a stage's exception
+is raised in the caller's thread as a :class:`~orbslam_hgcn.pipeline.worker.WorkerError`.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ from orbslam_hgcn.config import (
     ORBConfig,
     RelocalizationConfig,
     SystemConfig,
+    ThreadsConfig,
     TrackingConfig,
     load_yaml,
     section_from_yaml,
@@ -43,6 +51,8 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.loop.closer import LoopCloser
 from orbslam_hgcn.map import Frame, KeyFrame, Map
 from orbslam_hgcn.mapping.local_mapper import LocalMapper
+from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
+from orbslam_hgcn.pipeline.stages import SequentialStages, ThreadedStages
 from orbslam_hgcn.pipeline.results import (
     camera_trajectory,
     frame_counts,
@@ -61,7 +71,7 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class Configs:
     """Every stage's configuration (YAML sections: orb, initializer, tracking,
-    local_mapping, backend, map, system, loop_closing, relocalization)."""
+    local_mapping, backend, map, system, loop_closing, relocalization, threads)."""
 
     orb: ORBConfig = field(default_factory=ORBConfig)
     initializer: InitializerConfig = field(default_factory=InitializerConfig)
@@ -72,6 +82,7 @@ class Configs:
     system: SystemConfig = field(default_factory=SystemConfig)
     loop_closing: LoopClosingConfig = field(default_factory=LoopClosingConfig)
     relocalization: RelocalizationConfig = field(default_factory=RelocalizationConfig)
+    threads: ThreadsConfig = field(default_factory=ThreadsConfig)
 
     @classmethod
     def from_yaml(cls, path: str | Path | None) -> Configs:
@@ -97,7 +108,11 @@ class RunSummary:
 
 
 class System:
-    """Monocular SLAM over one camera; stages run in order on the calling thread."""
+    """Monocular SLAM over one camera.
+
+    sequential: run the stages in order on the calling thread (True) or local mapping and
+    loop closing in worker threads (False); None: as ``configs.threads.sequential``.
+    """
 
     def __init__(
         self,
@@ -106,9 +121,12 @@ class System:
         vocabulary: Any = None,
         loop_closer: Any = None,
         relocalizer: Any = None,
+        sequential: bool | None = None,
     ) -> None:
         self.camera = camera
         self.configs = c = configs or Configs()
+        self.sequential = c.threads.sequential if sequential is None else bool(sequential)
+        self._stages: SequentialStages | ThreadedStages | None = None
         self.vocabulary = vocabulary
         self.loop_closer = loop_closer
         self.relocalizer = relocalizer
@@ -131,20 +149,73 @@ class System:
             relocalizer=self.relocalizer,
         )
         self.mapper = LocalMapper(self.map, c.local_mapping, c.backend, vocabulary=vocabulary)
-        self.timings: dict[str, list[float]] = {"extraction": [], "tracking": [], "tracking_cpu": [], "frame": []}
+        self.timings: dict[str, list[float]] = {
+            "extraction": [], "tracking": [], "tracking_cpu": [], "frame": [], "lock_wait": [],
+        }  # fmt: skip
+        # Per frame of timings["frame"]: whether a BA or pose graph was being solved during it.
+        self.frame_optimising: list[bool] = []
         self.events: list[dict[str, Any]] = []
         self.n_resets = 0
         # Called as observer(system, record, result) after every frame of :meth:`run`
         # (visualisation, progress reporting); they must not change the map.
         self.observers: list[Callable[[System, FrameRecord, TrackResult], None]] = []
 
-    # --- one frame -----------------------------------------------------------------------
-    def _mapping_idle(self) -> bool:
-        return True  # sequential: the mapper finished the previous keyframe already
+    # --- stages ------------------------------------------------------------------------
+    @property
+    def stages(self) -> SequentialStages | ThreadedStages:
+        """The stage runner (threads and solver processes start on first use)."""
+        if self._stages is None:
+            if self.sequential:
+                self._stages = SequentialStages(self.mapper, self.loop_closer)
+            else:
+                self._share_map()
+                self._stages = ThreadedStages(self.mapper, self.loop_closer, self.configs.threads.process_solver)
+        return self._stages
 
+    def _share_map(self) -> None:
+        """Give the map a lock that lets tracking go first (threaded mode; no other thread
+        may hold the map's lock yet)."""
+        if not isinstance(self.tracker.map.lock, TrackingFirstLock):
+            self.tracker.map.lock = TrackingFirstLock()
+
+    @property
+    def map_lock(self) -> Any:
+        """The lock that guards the current map (hold it to read the map while stages run)."""
+        return self.map.lock
+
+    def _mapping_idle(self) -> bool:
+        return self.stages.mapping_idle()
+
+    def close(self, drain: bool = True) -> None:
+        """Finish the keyframes handed to local mapping and loop closing (``drain``; else
+        drop them), stop their threads and solver processes. Raises a stage's error."""
+        stages, self._stages = self._stages, None
+        if stages is not None:
+            stages.close(drain)
+
+    def __enter__(self) -> System:
+        return self
+
+    def __exit__(self, exc_type: Any, *exc: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self._close_quietly()
+
+    def _close_quietly(self) -> None:
+        """Stop without draining while another exception propagates (logged, not raised)."""
+        try:
+            self.close(drain=False)
+        except Exception as exc:  # noqa: BLE001 - the exception already propagating wins
+            log.error("while stopping after an error: %s", exc)
+
+    # --- one frame -----------------------------------------------------------------------
     def process(self, image: np.ndarray, timestamp: float, frame_id: int) -> TrackResult:
         """Extract, track and map one image ((H, W) uint8 gray or (H, W, 3) BGR)."""
         t0 = time.perf_counter()
+        stages = self.stages
+        stages.check()
+        started, optimising = stages.activity.started, stages.optimising
         if not self.tracker.can_recover:
             return self.tracker.skip(frame_id, timestamp)
         if image.ndim == 3:
@@ -152,7 +223,9 @@ class System:
         initializing = self.tracker.state == TrackingState.NOT_INITIALIZED
         kps = (self.init_extractor if initializing else self.extractor).extract(image, self.camera)
         t1 = time.perf_counter()
-        result = self.tracker.track(Frame(frame_id, timestamp, self.camera, kps))
+        with first(self.tracker.map.lock):
+            self.timings["lock_wait"].append(1000.0 * (time.perf_counter() - t1))
+            result = self.tracker.track(Frame(frame_id, timestamp, self.camera, kps))
         self.timings["extraction"].append(1000.0 * (t1 - t0))
         if result.state == TrackingState.OK and not result.initialized:
             self.timings["tracking"].append(result.time_ms)
@@ -166,6 +239,8 @@ class System:
         for kf in result.new_keyframes:
             self._on_keyframe(kf)
         self.timings["frame"].append(1000.0 * (time.perf_counter() - t0))
+        optimising = optimising or stages.optimising or stages.activity.started != started
+        self.frame_optimising.append(bool(optimising))
         return result
 
     def _on_keyframe(self, kf: KeyFrame) -> None:
@@ -173,12 +248,13 @@ class System:
             self.map.update_points(kf.observed_points()[1])
             self.map.update_connections(kf.id)
             return
-        out = self.mapper.process(kf)
-        if out is not None and self.loop_closer is not None:
-            self.loop_closer.process(out)
+        self.stages.submit(kf)
 
     def _reset(self, frame_id: int, timestamp: float) -> None:
         self.n_resets += 1
+        self.stages.sync()  # the stages finish the keyframes of the discarded map first
+        if not self.sequential:
+            self._share_map()
         self.map = self.tracker.map
         self.mapper.reset(self.map)
         for stage in (self.loop_closer, self.relocalizer):
@@ -189,7 +265,9 @@ class System:
     # --- a whole sequence ----------------------------------------------------------------
     def run(self, sequence: Sequence, max_frames: int | None = None, progress: bool | None = None) -> RunSummary:
         """Process the frames of ``sequence`` in order. Ctrl-C stops after the current
-        step; what exists is kept (``RunSummary.interrupted``)."""
+        step; what exists is kept (``RunSummary.interrupted``). At the end (also after
+        Ctrl-C) the keyframes handed to the stages are finished and their threads joined;
+        on an error they are stopped and the error propagates."""
         n = len(sequence) if max_frames is None else min(len(sequence), max_frames)
         show = self.configs.system.progress if progress is None else progress
         bar = tqdm(total=n, unit="frame", disable=not show, dynamic_ncols=True)
@@ -200,20 +278,35 @@ class System:
                 rec = sequence[i]
                 t_frame = time.perf_counter()
                 result = self.process(rec.image, rec.timestamp, rec.index)
-                for observe in self.observers:
-                    observe(self, rec, result)
+                if self.observers:
+                    with self.map.lock:
+                        for observe in self.observers:
+                            observe(self, rec, result)
                 done += 1
                 bar.update(1)
                 dt = time.perf_counter() - t_frame
-                bar.set_postfix(
-                    state=result.state.value, kf=self.map.n_keyframes(), pts=self.map.n_points(),
-                    fps=f"{1.0 / max(dt, 1e-6):.1f}", refresh=False,
-                )  # fmt: skip
+                # Counts only when the map is free: the bar must not wait for a stage.
+                if show and self.map.lock.acquire(blocking=False):
+                    try:
+                        bar.set_postfix(
+                            state=result.state.value, kf=self.map.n_keyframes(), pts=self.map.n_points(),
+                            fps=f"{1.0 / max(dt, 1e-6):.1f}", refresh=False,
+                        )  # fmt: skip
+                    finally:
+                        self.map.lock.release()
         except KeyboardInterrupt:
             interrupted = True
             log.warning("interrupted after %d frames; saving what exists", done)
-        finally:
+        except BaseException:
             bar.close()
+            self._close_quietly()
+            raise
+        bar.close()
+        try:
+            self.close(drain=True)
+        except KeyboardInterrupt:  # a second Ctrl-C while the stages finish: stop them now
+            interrupted = True
+            self._close_quietly()
         return RunSummary(done, interrupted, time.perf_counter() - t0)
 
     # --- results -------------------------------------------------------------------------
@@ -227,18 +320,22 @@ class System:
         """Counts and per-stage timings (ms) of the run so far."""
         counts = frame_counts(self.tracker.records, self.tracker.generation)
         mt = self.mapper.timings
+        opt = np.asarray(self.frame_optimising, dtype=bool)
         return {
             "frames": counts,
             "keyframes": self.map.n_keyframes(),
             "map_points": self.map.n_points(),
             "map_resets": self.n_resets,
             "final_state": self.tracker.state.value,
+            "threads": {"sequential": self.sequential, "process_solver": self.configs.threads.process_solver},
             "events": self.events,
             "timing_ms": {
                 "extraction_per_frame": summary_ms(self.timings["extraction"]),
                 "tracking_per_frame": summary_ms(self.timings["tracking"]),
                 "tracking_cpu_per_frame": summary_ms(self.timings["tracking_cpu"]),
                 "frame_total": summary_ms(self.timings["frame"]),
+                "frame_total_while_optimising": summary_ms(np.asarray(self.timings["frame"])[opt]),
+                "map_lock_wait_per_frame": summary_ms(self.timings["lock_wait"]),
                 "local_mapping_per_keyframe": summary_ms(mt.get("total", [])),
                 "local_mapping_cpu_per_keyframe": summary_ms(mt.get("total_cpu", [])),
                 "local_ba_per_keyframe": summary_ms(mt.get("local_ba", [])),

@@ -130,6 +130,9 @@ class Tracker:
         self.initializer = MonocularInitializer(self.config, initializer, self.backend)
         self.records: list[PoseRecord] = []
         self.generation = 0
+        # Localisation only (ORB-SLAM2's mbOnlyTracking): track against the map without
+        # making keyframes, and never discard the map when tracking is lost.
+        self.localization = False
         self._next_frame_id = 0
         self._bind(m)
 
@@ -263,7 +266,7 @@ class Tracker:
                     "frame %d (t=%.3f): tracking lost (%d inliers after the local map, %d keyframes in the map)",
                     frame.id, frame.timestamp, n_in, m.n_keyframes(),
                 )  # fmt: skip
-            if m.n_keyframes() <= cfg.reset_max_keyframes:
+            if m.n_keyframes() <= cfg.reset_max_keyframes and not self.localization:
                 log.warning(
                     "map reset: tracking lost with only %d keyframes; initialising again", m.n_keyframes()
                 )
@@ -320,6 +323,8 @@ class Tracker:
         return n_in >= cfg.min_inliers, n_in
 
     def _maybe_keyframe(self, frame: Frame, n_in: int) -> KeyFrame | None:
+        if self.localization:
+            return None
         m = self.map
         n_kfs = m.n_keyframes()
         ref_id = good_keyframe(m, self.ref_kf_id)

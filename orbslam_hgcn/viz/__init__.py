@@ -5,6 +5,8 @@
 - :mod:`~orbslam_hgcn.viz.rerun_logger`: RerunLogger, which logs them.
 - :mod:`~orbslam_hgcn.viz.sinks`: the ``--rerun`` argument and the spawn/save/connect sinks
   (imports rerun only when a sink is opened).
+- :mod:`~orbslam_hgcn.viz.live`: LiveViz, the ``System.observers`` entry that logs a running
+  system (``orbslam-hgcn run ... --rerun spawn | save FILE.rrd | connect ADDR``).
 - :mod:`~orbslam_hgcn.viz.blueprint`: the default viewer layout.
 - :mod:`~orbslam_hgcn.viz.demo`: a synthetic run for checking the set-up.
 

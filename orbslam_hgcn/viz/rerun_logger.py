@@ -222,6 +222,13 @@ class RerunLogger:
         if state_changed:
             rec.log(ent.EVENTS, rr.TextLog(f"tracking state: {state}", level="INFO"))
 
+    def log_camera_pose(self, frame_index: int, T_wc: np.ndarray) -> None:
+        """The camera pose, (4, 4) T_wc, of an earlier frame whose pose became known later
+        (the first keyframe of a monocular initialisation)."""
+        T_wc = np.asarray(T_wc, dtype=np.float64)
+        self._set_time(frame_index)
+        self._rec.log(ent.CAMERA, rr.Transform3D(translation=T_wc[:3, 3], mat3x3=T_wc[:3, :3]))
+
     def _log_image(self, image: np.ndarray) -> None:
         fmt = self.config.image_format
         if fmt == "jpeg":

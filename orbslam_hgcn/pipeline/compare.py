@@ -1,0 +1,227 @@
+"""Compare visual vocabularies end to end: the ``orbslam-hgcn compare`` command.
+
+Runs the whole system (loop closing on) N times per vocabulary over one dataset through
+:func:`~orbslam_hgcn.pipeline.run.run_dataset`, each run in its own folder
+``OUT/<vocab>/run<i>``, and summarises per vocabulary: keyframe ATE after Sim(3)
+alignment (Umeyama 1991; median, min, max over the runs), loops closed, frames lost and
+frames per second. Writes ``OUT/compare.md`` (Markdown tables), ``OUT/compare.json`` and
+``OUT/compare_ate.png`` (a box plot of the ATE). With the stages run in order every run of
+one vocabulary gives the same result (seeded RANSAC); repeated runs differ only when the
+stages run on threads, through timing. A failed run is recorded with its error and the
+comparison goes on.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from orbslam_hgcn.errors import ConfigError, OrbslamError
+
+log = logging.getLogger(__name__)
+
+RunFn = Callable[..., Any]
+
+
+@dataclass
+class RunOutcome:
+    """One run: the figures read back from its ``stats.json`` (None when it failed)."""
+
+    vocab: str
+    run: int
+    out: str
+    ok: bool
+    error: str | None = None
+    ate_rmse_m: float | None = None  # keyframes, Sim(3); None when not available
+    ate_error: str | None = None  # why the ATE is not available
+    loops_closed: int | None = None
+    frames: int | None = None
+    frames_lost: int | None = None
+    wall_s: float | None = None
+    fps: float | None = None
+
+
+@dataclass
+class Comparison:
+    """Every run, the per-vocabulary summary and the files written."""
+
+    dataset: dict[str, Any]
+    runs: list[RunOutcome]
+    summary: dict[str, dict[str, Any]]
+    paths: dict[str, Path] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"dataset": self.dataset, "summary": self.summary, "runs": [asdict(r) for r in self.runs]}
+
+
+def outcome_from_stats(vocab: str, run: int, out: Path, stats: dict[str, Any]) -> RunOutcome:
+    """The figures of one finished run from its stats dict (as written to stats.json)."""
+    ate = stats.get("ate_sim3", {}).get("keyframes", {})
+    frames = int(stats["frames"]["frames"])
+    wall = float(stats["wall_s"])
+    return RunOutcome(
+        vocab=vocab, run=run, out=str(out), ok=True,
+        ate_rmse_m=float(ate["rmse_m"]) if "rmse_m" in ate else None,
+        ate_error=None if "rmse_m" in ate else ate.get("error", "no ground truth"),
+        loops_closed=len(stats.get("loop_closing", {}).get("loops", [])),
+        frames=frames, frames_lost=int(stats["frames"]["lost"]), wall_s=wall,
+        fps=frames / wall if wall > 0 else None,
+    )  # fmt: skip
+
+
+def _spread(values: list[float]) -> dict[str, Any]:
+    if not values:
+        return {"median": None, "min": None, "max": None, "values": []}
+    v = np.asarray(values, dtype=np.float64)
+    return {"median": float(np.median(v)), "min": float(v.min()), "max": float(v.max()), "values": list(values)}
+
+
+def summarise(runs: list[RunOutcome], vocabs: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """Per vocabulary: runs, failures, and median/min/max of ATE, loops, frames lost, fps."""
+    out: dict[str, dict[str, Any]] = {}
+    for v in vocabs:
+        mine = [r for r in runs if r.vocab == v]
+        ok = [r for r in mine if r.ok]
+        out[v] = {
+            "runs": len(mine),
+            "ok": len(ok),
+            "failures": [{"run": r.run, "error": r.error} for r in mine if not r.ok],
+            "ate_rmse_m": _spread([r.ate_rmse_m for r in ok if r.ate_rmse_m is not None]),
+            "loops_closed": _spread([r.loops_closed for r in ok]),
+            "frames_lost": _spread([r.frames_lost for r in ok]),
+            "fps": _spread([r.fps for r in ok if r.fps is not None]),
+        }
+    return out
+
+
+def _mm(x: float | None) -> str:
+    return "n/a" if x is None else f"{1000.0 * x:.2f}"
+
+
+def _num(x: float | None, fmt: str = "{:g}") -> str:
+    return "n/a" if x is None else fmt.format(x)
+
+
+def describe_run(r: RunOutcome) -> str:
+    """One line on one run (ATE, loops, frames lost, fps, or why it failed)."""
+    head = f"{r.vocab} run {r.run}"
+    if not r.ok:
+        return f"{head}: FAILED: {r.error}"
+    ate = f"ATE {_mm(r.ate_rmse_m)} mm (keyframes, Sim(3))" if r.ate_rmse_m is not None else f"no ATE ({r.ate_error})"
+    return (f"{head}: {ate}, {r.loops_closed} loop(s) closed, {r.frames_lost} of {r.frames} frames lost, "
+            f"{_num(r.fps, '{:.1f}')} fps")
+
+
+def format_markdown(c: Comparison) -> str:
+    """The summary table (one row per vocabulary) and the table of every run."""
+    d = c.dataset
+    lines = [
+        f"# Vocabulary comparison: {d['name']}",
+        "",
+        f"Dataset `{d['path']}` ({d['kind']}), {d['max_frames'] or 'all'} frames, {d['runs']} run(s) per vocabulary, "
+        "loop closing on. ATE: keyframe trajectory after Sim(3) alignment, RMSE per run.",
+        "",
+        "| vocabulary | runs ok | ATE median (mm) | ATE min (mm) | ATE max (mm) | loops closed (median) | "
+        "frames lost (median) | fps (median) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for v, s in c.summary.items():
+        a = s["ate_rmse_m"]
+        lines.append(
+            f"| {v} | {s['ok']}/{s['runs']} | {_mm(a['median'])} | {_mm(a['min'])} | {_mm(a['max'])} | "
+            f"{_num(s['loops_closed']['median'])} | {_num(s['frames_lost']['median'])} | "
+            f"{_num(s['fps']['median'], '{:.2f}')} |"
+        )
+    lines += ["", "| vocabulary | run | ATE (mm) | loops closed | frames | frames lost | fps | status |",
+              "|---|---|---|---|---|---|---|---|"]
+    for r in c.runs:
+        status = "ok" if r.ok else f"failed: {r.error}"
+        if r.ok and r.ate_rmse_m is None:
+            status = f"ok (no ATE: {r.ate_error})"
+        lines.append(
+            f"| {r.vocab} | {r.run} | {_mm(r.ate_rmse_m)} | {_num(r.loops_closed)} | {_num(r.frames)} | "
+            f"{_num(r.frames_lost)} | {_num(r.fps, '{:.2f}')} | {status.replace('|', '/')} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def run_comparison(
+    path: str | Path,
+    out: str | Path,
+    kind: str | None = None,
+    config: str | Path | None = None,
+    runs: int = 5,
+    vocabs: Sequence[str] = ("orb", "hgcn"),
+    max_frames: int | None = None,
+    progress: bool = True,
+    rerun_first: Sequence[str] | None = None,
+    sequential: bool = False,
+    run_fn: RunFn | None = None,
+    on_run: Callable[[RunOutcome], None] | None = None,
+) -> Comparison:
+    """Run every vocabulary ``runs`` times over the dataset at ``path`` (loop closing on)
+    and write compare.md, compare.json and compare_ate.png into ``out``.
+
+    rerun_first: ``--rerun`` tokens for the first run only (e.g. ``["save", "x.rrd"]``),
+    used when :func:`run_dataset` accepts a ``rerun`` argument. sequential: run the stages
+    in order (then every run of a vocabulary gives the same figures). run_fn: replaces
+    :func:`run_dataset` (same arguments), for tests. on_run: called with each run's
+    outcome as soon as it is known (progress printing).
+    """
+    import inspect
+
+    from orbslam_hgcn.evaluation.plots import box_plot
+    from orbslam_hgcn.pipeline.run import run_dataset
+
+    if runs < 1:
+        raise ConfigError(f"--runs must be at least 1, found {runs}")
+    if not vocabs:
+        raise ConfigError("--vocabs: give at least one vocabulary (orb, hgcn or a file)")
+    run_fn = run_fn or run_dataset
+    params = inspect.signature(run_fn).parameters
+    accepts_rerun = "rerun" in params
+    common: dict[str, Any] = {"sequential": True} if sequential and "sequential" in params else {}
+    if rerun_first is not None and not accepts_rerun:
+        log.warning("this build records no rerun visualisation of runs; --rerun ignored")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    outcomes: list[RunOutcome] = []
+    name = Path(path).name
+    for v in vocabs:
+        for i in range(1, runs + 1):
+            run_out = out / Path(v).stem / f"run{i}"
+            kw: dict[str, Any] = dict(common)
+            if accepts_rerun and rerun_first is not None and not outcomes:
+                kw["rerun"] = list(rerun_first)
+            log.info("vocabulary %s, run %d of %d -> %s", v, i, runs, run_out)
+            try:
+                report = run_fn(path, run_out, kind=kind, config=config, max_frames=max_frames, loop_closing=True,
+                                progress=progress, vocab=v, **kw)
+                stats = json.loads(Path(report.paths["stats"]).read_text(encoding="utf-8"))
+                name = stats.get("dataset", {}).get("name", name)
+                outcomes.append(outcome_from_stats(v, i, run_out, stats))
+            except OrbslamError as exc:  # a failed run is reported in the table; the others go on
+                log.warning("vocabulary %s, run %d failed: %s", v, i, exc)
+                outcomes.append(RunOutcome(v, i, str(run_out), ok=False, error=str(exc)))
+            except Exception as exc:  # a crash too, with its traceback in the log
+                log.exception("vocabulary %s, run %d failed", v, i)
+                outcomes.append(RunOutcome(v, i, str(run_out), ok=False, error=f"{type(exc).__name__}: {exc}"))
+            if on_run is not None:
+                on_run(outcomes[-1])
+    dataset = {"path": str(path), "kind": kind or "auto", "name": name, "max_frames": max_frames, "runs": runs,
+               "config": str(config) if config else None}
+    comp = Comparison(dataset, outcomes, summarise(outcomes, list(vocabs)))
+    md = format_markdown(comp)
+    comp.paths = {"markdown": out / "compare.md", "json": out / "compare.json", "plot": out / "compare_ate.png"}
+    comp.paths["markdown"].write_text(md, encoding="utf-8")
+    comp.paths["json"].write_text(json.dumps(comp.to_json(), indent=2) + "\n", encoding="utf-8")
+    groups = {v: [1000.0 * x for x in s["ate_rmse_m"]["values"]] for v, s in comp.summary.items()}
+    box_plot(groups, comp.paths["plot"], ylabel="keyframe ATE RMSE, Sim(3) (mm)",
+             title=f"{name}: {runs} run(s) per vocabulary")
+    return comp

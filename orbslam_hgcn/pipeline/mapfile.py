@@ -1,0 +1,129 @@
+"""Saved maps in a running system: write a System's map with its vocabulary reference, read
+one back under the same vocabulary, and install it into a System for localisation.
+
+The file itself is :mod:`orbslam_hgcn.map.io`. Keyframe BoW vectors are only meaningful
+under the vocabulary that computed them, so the file records that vocabulary (kind, the
+name or path it was opened by, word count, SHA-256 of its IDF weights and metadata) and
+reading it under another one is a :class:`~orbslam_hgcn.errors.VocabularyError`.
+
+Localisation only (ORB-SLAM2's localisation mode): the loaded map is installed, the tracker
+starts LOST so the first frame is relocalised from the keyframe database (rebuilt from the
+saved BoW vectors), and then tracks against the map without making keyframes or resetting
+it. Only the points' found/visible counters change, as in ORB-SLAM2.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from orbslam_hgcn.config import camera_to_dict
+from orbslam_hgcn.errors import VocabularyError
+from orbslam_hgcn.map import Map
+from orbslam_hgcn.map.io import MapFile, MapFileError, read_header, read_map, save_map
+from orbslam_hgcn.tracking.tracker import TrackingState
+from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector
+
+log = logging.getLogger(__name__)
+
+
+def vocabulary_reference(vocabulary: Any, name: str | None = None) -> dict[str, Any]:
+    """What identifies a vocabulary in a map file: kind, name (``orb``/``hgcn`` for the
+    shipped ones, else a resolved path), word count, training description and a SHA-256
+    over its (W,) IDF weights and its metadata JSON."""
+    h = hashlib.sha256(np.ascontiguousarray(vocabulary.idf, dtype=np.float32).tobytes())
+    h.update(vocabulary.metadata.to_json().encode("utf-8"))
+    name = name or vocabulary.kind
+    if name not in ("orb", "hgcn") and Path(name).exists():
+        name = str(Path(name).resolve())
+    return {
+        "kind": vocabulary.kind,
+        "name": name,
+        "n_words": int(vocabulary.n_words),
+        "trained_on": vocabulary.metadata.trained_on,
+        "sha256": h.hexdigest(),
+    }
+
+
+def map_vocabulary_name(path: str | Path) -> str | None:
+    """The vocabulary name or path recorded in a map file (None if it had none)."""
+    _, meta = read_header(path)
+    ref = meta.get("vocabulary")
+    return ref.get("name") if isinstance(ref, dict) else None
+
+
+def check_vocabulary(mf: MapFile, vocabulary: Any) -> None:
+    """VocabularyError unless ``vocabulary`` is the one the map's BoW vectors were made with."""
+    ref = mf.meta.get("vocabulary")
+    if not isinstance(ref, dict):
+        if mf.bow:
+            raise MapFileError(f"{mf.path}: the map holds BoW vectors but no vocabulary reference")
+        return
+    if vocabulary is None:
+        raise VocabularyError(f"{mf.path}: the map was built with the {ref['kind']} vocabulary {ref['name']!r}; "
+                              f"open it with that vocabulary (--vocab {ref['name']})")
+    mine = vocabulary_reference(vocabulary)
+    if mine["sha256"] != ref.get("sha256"):
+        raise VocabularyError(
+            f"{mf.path}: the map was built with the {ref['kind']} vocabulary {ref['name']!r} ({ref['n_words']} words, "
+            f"sha256 {str(ref.get('sha256'))[:12]}), but the vocabulary given is a {mine['kind']} one with "
+            f"{mine['n_words']} words (sha256 {mine['sha256'][:12]}); use --vocab {ref['name']}"
+        )
+
+
+def load_map(path: str | Path, vocabulary: Any) -> MapFile:
+    """Read a map file and give its keyframes their BoW and feature vectors, after checking
+    that ``vocabulary`` is the one they were computed with."""
+    mf = read_map(path)
+    check_vocabulary(mf, vocabulary)
+    for kf_id, (words, weights) in mf.bow.items():
+        mf.map.keyframe(kf_id).bow = BowVector(words, weights)
+    for kf_id, nodes in mf.nodes.items():
+        mf.map.keyframe(kf_id).featvec = FeatureVector.from_nodes(nodes, nodes >= 0)
+    return mf
+
+
+def save_system_map(path: str | Path, system: Any, vocab_name: str | None = None) -> Path:
+    """Write ``system.map`` with a reference to ``system.vocabulary`` (opened as ``vocab_name``)."""
+    meta: dict[str, Any] = {}
+    if system.vocabulary is not None:
+        meta["vocabulary"] = vocabulary_reference(system.vocabulary, vocab_name)
+    return save_map(path, system.map, meta)
+
+
+def install_map(system: Any, m: Map, localization: bool = True) -> None:
+    """Make ``m`` the map of ``system`` (before its first frame).
+
+    Replaces system.map and the tracker's map (a new tracker generation, state LOST so the
+    next frame is relocalised), points the local mapper, loop closer and relocaliser at it
+    through their ``reset(map)``, and rebuilds the keyframe database from the keyframes'
+    BoW vectors. ``localization``: the tracker then never makes keyframes nor resets the map.
+    """
+    if system.database is None or system.relocalizer is None:
+        raise VocabularyError("tracking against a saved map needs a vocabulary (relocalisation)")
+    missing = [kf.id for kf in m.keyframes() if kf.bow is None]
+    if missing:
+        raise MapFileError(f"keyframes {missing[:5]} of the loaded map have no BoW vector; cannot relocalise")
+    kf_camera = m.keyframes()[0].camera
+    if (kf_camera.width, kf_camera.height) != (system.camera.width, system.camera.height):
+        raise MapFileError(f"the map's camera is {kf_camera.width}x{kf_camera.height}, the sequence's "
+                           f"{system.camera.width}x{system.camera.height}")
+    if camera_to_dict(kf_camera) != camera_to_dict(system.camera):
+        log.warning("the map's camera %s differs from the sequence's %s", kf_camera, system.camera)
+    system.map = m
+    system.tracker.reset(m)
+    system.tracker.state = TrackingState.LOST
+    system.tracker.localization = bool(localization)
+    system.mapper.reset(m)
+    for stage in (system.loop_closer, system.relocalizer):
+        if stage is not None and hasattr(stage, "reset"):
+            stage.reset(m)
+    system.database.clear()
+    for kf in m.keyframes():
+        system.database.add(kf.id, kf.bow)
+    log.info("installed a map of %d keyframes and %d points%s", m.n_keyframes(), m.n_points(),
+             " (localisation only)" if localization else "")

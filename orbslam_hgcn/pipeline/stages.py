@@ -1,0 +1,248 @@
+"""How the keyframes of the tracker reach local mapping and loop closing: in order on the
+calling thread, or through worker threads as ORB-SLAM runs them.
+
+Both runners offer the same small interface to :class:`~orbslam_hgcn.pipeline.system.System`:
+``mapping_idle()`` (the tracker's AcceptKeyFrames), ``submit(kf)``, ``optimising`` (an
+optimisation is being solved), ``sync()`` (wait until every keyframe handed over is
+processed), ``check()`` (re-raise a stage's failure) and ``close(drain)``.
+
+:class:`ThreadedStages` (ORB-SLAM, Mur-Artal, Montiel & Tardos, T-RO 2015, Sec. III):
+
+* local mapping and loop closing each run in a :class:`~.worker.Worker` thread fed by a
+  queue; the mapper hands the keyframes it keeps to the loop closer's queue;
+* every stage holds the map lock (:attr:`Map.lock`) per step, the tracker per frame; the
+  local and global BA hold it only to cut their problem from the map and write the result
+  back, and are solved in a child process (:class:`~orbslam_hgcn.backend.solver.ProcessSolver`)
+  so the tracking thread keeps the GIL meanwhile;
+* keyframe acceptance: local mapping accepts a keyframe when idle, or while its local BA
+  runs, in which case the waiting keyframe aborts that BA (ORB-SLAM's ``InterruptBA``
+  followed by the insertion on the next frame, in one step); a stop request (loop
+  correction, shutdown) aborts it too;
+* the loop closer pauses local mapping for the correction and for writing back the global
+  BA: :meth:`ThreadedStages.pause_mapping` waits until the keyframe being mapped is done
+  and holds the next one back (ORB-SLAM ``RequestStop`` / ``Release``).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver
+from orbslam_hgcn.map import KeyFrame
+from orbslam_hgcn.pipeline.worker import Worker, WorkerError
+
+log = logging.getLogger(__name__)
+
+
+class ActivityCounter:
+    """Counts optimisations (and loop corrections) in flight and started, across threads,
+    for the latency figures."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.running = 0
+        self.started = 0
+        self.busy_s = 0.0  # wall time with at least one optimisation in flight
+        self._since = 0.0
+
+    def enter(self) -> None:
+        with self._lock:
+            if self.running == 0:
+                self._since = time.perf_counter()
+            self.running += 1
+            self.started += 1
+
+    def exit(self) -> None:
+        with self._lock:
+            self.running -= 1
+            if self.running == 0:
+                self.busy_s += time.perf_counter() - self._since
+
+
+class CountingSolver:
+    """A solver proxy that records its calls in an :class:`ActivityCounter`."""
+
+    def __init__(self, solver: Any, activity: ActivityCounter) -> None:
+        self.solver = solver
+        self.activity = activity
+
+    def _run(self, name: str, *args: Any, **kw: Any) -> Any:
+        self.activity.enter()
+        try:
+            return getattr(self.solver, name)(*args, **kw)
+        finally:
+            self.activity.exit()
+
+    def local_ba(self, *args: Any, **kw: Any) -> Any:
+        return self._run("local_ba", *args, **kw)
+
+    def global_ba(self, *args: Any, **kw: Any) -> Any:
+        return self._run("global_ba", *args, **kw)
+
+    def essential_graph(self, *args: Any, **kw: Any) -> Any:
+        return self._run("essential_graph", *args, **kw)
+
+    def close(self) -> None:
+        self.solver.close()
+
+
+class SequentialStages:
+    """Local mapping, then loop closing, on the calling thread (deterministic)."""
+
+    def __init__(self, mapper: Any, loop_closer: Any) -> None:
+        self.mapper, self.loop_closer = mapper, loop_closer
+        self.activity = ActivityCounter()
+        # The same in-process solves as without a runner, counted for the timing figures.
+        mapper.solver = CountingSolver(InProcessSolver(), self.activity)
+        if loop_closer is not None and hasattr(loop_closer, "solver"):
+            loop_closer.solver = CountingSolver(InProcessSolver(), self.activity)
+
+    @property
+    def optimising(self) -> bool:
+        return self.activity.running > 0
+
+    def mapping_idle(self) -> bool:
+        return True  # the mapper finished the previous keyframe already
+
+    def submit(self, kf: KeyFrame) -> None:
+        out = self.mapper.process(kf)
+        if out is not None and self.loop_closer is not None:
+            self.loop_closer.process(out)
+
+    def sync(self) -> None:
+        """Nothing is pending."""
+
+    def check(self) -> None:
+        """Stage errors are raised where they happen."""
+
+    def close(self, drain: bool = True) -> None:
+        """Nothing to stop."""
+
+
+class ThreadedStages:
+    """Local mapping and loop closing in worker threads (see the module text).
+
+    process_solver: solve local and global BA in child processes (True), or in the worker
+    threads themselves (False: simpler, but every iteration stalls tracking).
+    """
+
+    def __init__(self, mapper: Any, loop_closer: Any, process_solver: bool = True) -> None:
+        self.mapper, self.loop_closer = mapper, loop_closer
+        self.activity = ActivityCounter()
+        self._gate = threading.Lock()  # held by the mapper per keyframe, by a pause
+        self._paused = False
+        self._stopping = False
+        self._solvers: list[Any] = []
+        self._mapping: Worker | None = None
+        self._loop: Worker | None = None
+        self._process_solver = process_solver
+        self._start()
+
+    def _solver(self, name: str) -> Any:
+        solver = ProcessSolver(name) if self._process_solver else InProcessSolver()
+        self._solvers.append(solver)
+        return CountingSolver(solver, self.activity)
+
+    def _start(self) -> None:
+        self.mapper.solver = self._solver("local-ba")
+        if isinstance(self.mapper.solver.solver, ProcessSolver):
+            self.mapper.solver.solver.start()  # gtsam loads in the child while tracking starts
+        self.mapper.should_abort = self._abort_ba
+        self._mapping = Worker("mapping", self._map_one).start()
+        if self.loop_closer is not None:
+            if hasattr(self.loop_closer, "pause_mapping"):
+                self.loop_closer.pause_mapping = self.pause_mapping
+            if hasattr(self.loop_closer, "solver"):
+                self.loop_closer.solver = self._solver("global-ba")  # its process starts with the first loop
+            self._loop = Worker("loop", self.loop_closer.process).start()
+
+    # --- the tracker's side --------------------------------------------------------------
+    @property
+    def optimising(self) -> bool:
+        return self.activity.running > 0
+
+    def mapping_idle(self) -> bool:
+        """ORB-SLAM AcceptKeyFrames: idle, or solving a local BA that a new keyframe may abort."""
+        w = self._mapping
+        if w is None or self._paused or self._stopping:
+            return False
+        if not w.busy:
+            return True
+        return bool(self.mapper.in_ba) and w.pending == 0
+
+    def submit(self, kf: KeyFrame) -> None:
+        self.check()
+        # A keyframe waiting in the queue is linked in the map already; keyframe culling of
+        # the one being mapped must not remove it before its own insertion.
+        self.mapper.map.set_not_erase(kf.id)
+        self._mapping.submit(kf)
+
+    def _abort_ba(self) -> bool:
+        """The mapper's should_abort: a keyframe waits, a pause or the shutdown is asked."""
+        w = self._mapping
+        return self._paused or self._stopping or (w is not None and w.pending > 0)
+
+    # --- the workers ---------------------------------------------------------------------
+    def _map_one(self, kf: KeyFrame) -> None:
+        with self._gate:
+            self.mapper.map.set_erase(kf.id)
+            if kf.bad:
+                return
+            out = self.mapper.process(kf)
+        if out is not None and self._loop is not None:
+            self._loop.submit(out)
+
+    def pause_mapping(self, pause: bool) -> None:
+        """True: abort a running local BA, wait for the keyframe being mapped, hold the next.
+        False: let local mapping go on. Called by the loop closer's thread."""
+        if pause:
+            self._paused = True
+            self._gate.acquire()
+            self.activity.enter()  # a loop correction or write-back counts as optimising
+        else:
+            self.activity.exit()
+            self._gate.release()
+            self._paused = False
+
+    # --- life cycle ----------------------------------------------------------------------
+    def sync(self) -> None:
+        """Wait until every keyframe handed over is mapped and loop-checked."""
+        for w in (self._mapping, self._loop):
+            if w is not None:
+                w.wait_idle()
+
+    def check(self) -> None:
+        for w in (self._mapping, self._loop):
+            if w is not None:
+                w.check()
+
+    def close(self, drain: bool = True) -> None:
+        """Stop the workers (after the queued keyframes with ``drain``; a running BA is
+        aborted either way), join them, stop the solver processes. The first stage error
+        is raised after everything is stopped."""
+        self._stopping = not drain
+        error: BaseException | None = None
+        try:
+            for w in (self._mapping, self._loop):  # mapping first: it feeds the loop closer
+                if w is None:
+                    continue
+                try:
+                    w.stop(drain=drain and error is None)
+                except WorkerError as exc:
+                    error = error or exc
+        finally:
+            self._mapping = self._loop = None
+            for s in self._solvers:
+                s.close()
+            self._solvers.clear()
+            # The stages are plain classes again, solving in the calling thread.
+            self.mapper.solver, self.mapper.should_abort = InProcessSolver(), None
+            if self.loop_closer is not None:
+                for attr in ("solver", "pause_mapping"):
+                    if hasattr(self.loop_closer, attr):
+                        setattr(self.loop_closer, attr, None)
+        if error is not None:
+            raise error

@@ -1,0 +1,257 @@
+"""The threaded system and its optimiser process: reproducible sequential runs, threaded runs
+that end cleanly and track as well, stage errors reaching the caller, and the child-process
+solver giving the in-process results."""
+
+import json
+import multiprocessing
+import threading
+
+import numpy as np
+import pytest
+
+from orbslam_hgcn.backend.pose_graph import relative_sim3
+from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver, SolverError, as_problem
+from orbslam_hgcn.backend.synthetic import drifted_loop, make_scene, perturb_pose
+from orbslam_hgcn.cli import main
+from orbslam_hgcn.config import BackendConfig
+from orbslam_hgcn.datasets import open_sequence
+from orbslam_hgcn.datasets.base import Sequence
+from orbslam_hgcn.evaluation.ate import evaluate
+from orbslam_hgcn.map import check_invariants
+from orbslam_hgcn.map.window import apply_window, local_window
+from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
+from orbslam_hgcn.pipeline.system import System
+from orbslam_hgcn.pipeline.worker import WorkerError
+
+N_FRAMES = 50  # initialisation takes about 22 frames of this sequence
+
+
+def _stage_threads() -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith("orbslam-") and t.is_alive()]
+
+
+def _assert_nothing_left() -> None:
+    assert _stage_threads() == []
+    assert multiprocessing.active_children() == []
+
+
+@pytest.fixture(scope="module")
+def seq(synth_replay_100) -> Sequence:
+    return open_sequence("tum", synth_replay_100)
+
+
+@pytest.fixture(scope="module")
+def sequential_runs(seq):
+    runs = []
+    for _ in range(2):
+        system = System(seq.camera, sequential=True)
+        system.run(seq, N_FRAMES, progress=False)
+        runs.append(system)
+    return runs
+
+
+@pytest.fixture(scope="module")
+def threaded_run(seq):
+    system = System(seq.camera, sequential=False)
+    summary = system.run(seq, N_FRAMES, progress=False)
+    return system, summary
+
+
+def test_sequential_runs_are_identical(sequential_runs):
+    a, b = sequential_runs
+    for get, n_min in ((System.camera_trajectory, 20), (System.keyframe_trajectory, 3)):
+        ta, tb = get(a), get(b)
+        assert len(ta) >= n_min
+        np.testing.assert_array_equal(ta.timestamps, tb.timestamps)
+        np.testing.assert_array_equal(ta.poses, tb.poses)  # bit for bit
+    assert a.map.n_points() == b.map.n_points()
+    np.testing.assert_array_equal(a.map.positions(a.map.point_ids()), b.map.positions(b.map.point_ids()))
+
+
+def test_threaded_run_completes_cleanly_and_tracks_as_well(seq, sequential_runs, threaded_run):
+    system, summary = threaded_run
+    assert summary.frames == N_FRAMES and not summary.interrupted
+    _assert_nothing_left()
+    stats, ref = system.stats(), sequential_runs[0].stats()
+    assert stats["frames"]["lost"] == 0 and stats["map_resets"] == 0
+    assert stats["frames"]["tracked"] == ref["frames"]["tracked"] >= 20
+    assert stats["mapping_counts"]["keyframes"] >= 4  # local mapping did run
+    assert check_invariants(system.map) == []
+    # Accuracy comparable to the sequential run: within twice its error, or a few mm.
+    for get, floor in ((System.keyframe_trajectory, 0.003), (System.camera_trajectory, 0.005)):
+        ate = evaluate(seq.ground_truth, get(system), align="sim3").ate.rmse
+        ate_ref = evaluate(seq.ground_truth, get(sequential_runs[0]), align="sim3").ate.rmse
+        assert ate < max(2.0 * ate_ref, floor), (ate, ate_ref)
+    # Every frame got a latency figure and a flag saying whether a BA ran meanwhile.
+    assert len(system.frame_optimising) == len(system.timings["frame"]) == N_FRAMES
+    assert any(system.frame_optimising)
+
+
+def test_stage_exception_reaches_the_caller(seq):
+    system = System(seq.camera, sequential=False)
+
+    def broken(kf):
+        raise RuntimeError(f"mapping broke on keyframe {kf.id}")
+
+    system.mapper.process = broken
+    with pytest.raises(WorkerError, match="mapping broke on keyframe") as info:
+        system.run(seq, 40, progress=False)
+    assert isinstance(info.value.__cause__, RuntimeError)
+    _assert_nothing_left()
+
+
+class _Interrupted(Sequence):
+    """The first ``cut`` frames of ``base``, then Ctrl-C."""
+
+    def __init__(self, base: Sequence, cut: int) -> None:
+        self.base, self.cut = base, cut
+        self.name, self.camera, self.ground_truth, self.color = base.name, base.camera, base.ground_truth, False
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def __getitem__(self, i: int):
+        if i >= self.cut:
+            raise KeyboardInterrupt
+        return self.base[i]
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self.base.timestamps
+
+
+def test_ctrl_c_stops_the_threads_and_keeps_the_map(seq):
+    system = System(seq.camera, sequential=False)
+    summary = system.run(_Interrupted(seq, 30), progress=False)
+    assert summary.interrupted and summary.frames == 30
+    _assert_nothing_left()
+    assert system.stats()["frames"]["tracked"] > 0 and system.map.n_keyframes() >= 2
+
+
+def test_cli_run_is_threaded_unless_sequential(synth_replay_100, tmp_path):
+    for flag, sequential in (([], False), (["--sequential"], True)):
+        out = tmp_path / str(sequential)
+        args = ["run", str(synth_replay_100), "--dataset", "tum", "--out", str(out), "--no-loop", "--vocab", "none",
+                "--max-frames", "26", "--no-progress", *flag]  # fmt: skip
+        assert main(args) == 0
+        stats = json.loads((out / "stats.json").read_text())
+        assert stats["threads"]["sequential"] is sequential
+        assert stats["frames"]["tracked"] > 0
+        _assert_nothing_left()
+
+
+# --- the optimiser process -----------------------------------------------------------------
+def _ba_problem(seed: int = 3):
+    rng = np.random.default_rng(seed)
+    sc = make_scene(6, 300, 0.7, rng)
+    fixed = np.zeros(6, dtype=bool)
+    fixed[:2] = True
+    T0 = sc.T_cw.copy()
+    for i in range(2, 6):
+        T0[i] = perturb_pose(sc.T_cw[i], 2.0, 0.10, rng)
+    P0 = sc.points + rng.normal(size=sc.points.shape) * 0.10
+    return sc, as_problem(T0, fixed, P0, sc.obs_kf, sc.obs_pt, sc.uv, sc.inv_sigma2, sc.K)
+
+
+def test_process_solver_gives_the_in_process_results():
+    sc, p = _ba_problem()
+    cfg = BackendConfig()
+    local = InProcessSolver()
+    S_true, S_drift, edges, S_ji = drifted_loop(20, np.random.default_rng(6))
+    edges = np.vstack([edges, [[19, 0]]])
+    S_ji = np.concatenate([S_ji, relative_sim3(S_true[19], S_true[0])[None]])
+    fixed = np.zeros(20, dtype=bool)
+    fixed[0] = True
+    with ProcessSolver("test-solver") as remote:
+        (a, hit_a), (b, hit_b) = local.local_ba(p, cfg, 0.0), remote.local_ba(p, cfg, 0.0)
+        ga, gb = local.global_ba(p, 5, cfg), remote.global_ba(p, 5, cfg)
+        ea = local.essential_graph(S_drift, edges, S_ji, fixed, None, cfg)
+        eb = remote.essential_graph(S_drift, edges, S_ji, fixed, None, cfg)
+        assert remote.alive
+    assert not remote.alive
+    assert not hit_a and not hit_b
+    assert not np.allclose(a.T_cw, p.T_cw)  # the BA moved the free poses
+    for x, y in ((a.T_cw, b.T_cw), (a.points, b.points), (ga.T_cw, gb.T_cw), (ga.points, gb.points), (ea, eb)):
+        np.testing.assert_allclose(y, x, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(a.outlier, b.outlier)
+    # A stop request is forwarded to the child: nothing is optimised.
+    with ProcessSolver("test-solver") as remote:
+        stopped, _ = remote.local_ba(p, cfg, 0.0, should_stop=lambda: True)
+    np.testing.assert_array_equal(stopped.T_cw, p.T_cw)
+
+
+def test_process_solver_errors_surface():
+    sc, p = _ba_problem()
+    solver = ProcessSolver("test-solver").start()
+    try:
+        bad = p._replace(fixed=p.fixed[:3])  # one flag per pose is required
+        with pytest.raises(SolverError, match="fixed must have one flag per pose") as info:
+            solver.local_ba(bad, BackendConfig())
+        assert "in the child process" in str(info.value) and "Traceback" in str(info.value)
+        # The process survives a failed request, and one that dies is reported.
+        solver.ping()
+        solver._proc.kill()
+        with pytest.raises(SolverError, match="died|lost"):
+            solver.local_ba(p, BackendConfig())
+        # The next request starts a fresh process.
+        res, _ = solver.local_ba(p, BackendConfig())
+        assert res.T_cw.shape == p.T_cw.shape
+    finally:
+        solver.close()
+    assert not solver.alive
+
+
+def test_tracking_first_lock_lets_the_priority_waiter_in_first():
+    lock = TrackingFirstLock()
+    order: list[str] = []
+    lock.acquire()
+    assert lock.acquire(blocking=False)  # re-entrant for the owner
+    lock.release()
+
+    def take(name: str, prio: bool) -> None:
+        with first(lock) if prio else lock:
+            order.append(name)
+
+    normal = threading.Thread(target=take, args=("mapper", False))
+    normal.start()
+    prio = threading.Thread(target=take, args=("tracker", True))
+    prio.start()
+    while lock._first_waiting == 0:
+        threading.Event().wait(0.001)
+    lock.release()
+    for t in (normal, prio):
+        t.join(5)
+    assert order == ["tracker", "mapper"]
+    with pytest.raises(RuntimeError):
+        lock.release()
+
+
+def test_ba_result_written_back_after_the_map_changed(sequential_runs):
+    """A local BA solved without the map lock comes back to a map where keyframes were culled
+    and points fused or discarded meanwhile: those are skipped, the rest is written."""
+    m = sequential_runs[1].map  # the last user of this run
+    kf_id = int(m.keyframe_ids()[-1])
+    w = local_window(m, kf_id)
+    free = [int(k) for k in w.kf_ids[~w.fixed] if int(k) not in (kf_id, m.origin_id)]
+    assert free and len(w.point_ids) > 10
+    culled = free[-1]
+    assert m.set_bad_keyframe(culled)
+    p_bad, p_old, p_new = (int(p) for p in w.point_ids[:3])
+    m.set_bad_point(p_bad)
+    m.replace_point(p_old, p_new)
+    T_new = w.T_cw.copy()
+    T_new[:, :3, 3] += 0.01
+    X_new = w.points + 0.01
+    outlier = np.isin(w.point_ids[w.obs_pt], [p_bad, p_old])
+    # Points left with too few observations by the culled keyframe went bad with it.
+    good = np.flatnonzero(~m.point_arrays(w.point_ids).bad)
+    assert not np.isin([p_bad, p_old], w.point_ids[good]).any() and len(good) > 10
+    before_bad = m.positions(w.point_ids[:2])
+    erased = apply_window(m, w, T_new, X_new, outlier)
+    assert erased == 0  # those observations went with the points
+    row = {int(k): i for i, k in enumerate(w.kf_ids)}
+    np.testing.assert_array_equal(m.keyframe(kf_id).T_cw, T_new[row[kf_id]])
+    assert not np.allclose(m.keyframe(culled).T_cw, T_new[row[culled]])
+    np.testing.assert_array_equal(m.positions(w.point_ids[good]), X_new[good])
+    np.testing.assert_array_equal(m.positions(w.point_ids[:2]), before_bad)  # bad points untouched
+    assert check_invariants(m) == []
