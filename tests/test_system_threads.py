@@ -9,8 +9,9 @@ import threading
 import numpy as np
 import pytest
 
+from orbslam_hgcn.backend.bundle_adjustment import as_problem
 from orbslam_hgcn.backend.pose_graph import relative_sim3
-from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver, SolverError, as_problem
+from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver, SolverError
 from orbslam_hgcn.backend.synthetic import drifted_loop, make_scene, perturb_pose
 from orbslam_hgcn.cli import main
 from orbslam_hgcn.config import BackendConfig

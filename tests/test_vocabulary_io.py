@@ -10,7 +10,8 @@ from orbslam_hgcn import cli
 from orbslam_hgcn.errors import VocabularyError
 from orbslam_hgcn.vocabulary import load_vocabulary
 from orbslam_hgcn.vocabulary import train as train_mod
-from orbslam_hgcn.vocabulary.base import FORMAT_VERSION, atomic_save_npz
+from orbslam_hgcn.npzfile import atomic_save_npz
+from orbslam_hgcn.vocabulary.base import FORMAT_VERSION
 from orbslam_hgcn.vocabulary.hgcn_vocab import HGCNVocabulary
 from orbslam_hgcn.vocabulary.orb_tree import TreeVocabulary
 

@@ -61,6 +61,20 @@ class BAProblem(NamedTuple):
     K: np.ndarray
 
 
+def as_problem(T_cw, fixed, points, obs_kf, obs_pt, uv, inv_sigma2, K) -> BAProblem:
+    """A :class:`BAProblem` of contiguous arrays with the dtypes the backend expects."""
+    return BAProblem(
+        np.ascontiguousarray(T_cw, dtype=np.float64).reshape(-1, 4, 4),
+        np.ascontiguousarray(fixed, dtype=bool).reshape(-1),
+        np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3),
+        np.ascontiguousarray(obs_kf, dtype=np.int64).reshape(-1),
+        np.ascontiguousarray(obs_pt, dtype=np.int64).reshape(-1),
+        np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 2),
+        np.ascontiguousarray(inv_sigma2, dtype=np.float64).reshape(-1),
+        np.ascontiguousarray(K, dtype=np.float64).reshape(3, 3),
+    )
+
+
 def observation_chi2(
     T_cw: np.ndarray, points: np.ndarray, obs_kf: np.ndarray, obs_pt: np.ndarray, uv: np.ndarray, inv_sigma2: np.ndarray, K: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -175,16 +189,7 @@ def bundle_adjustment(
     Returns BAResult(T_cw, points, outlier (O,) bool).
     """
     cfg = config or BackendConfig()
-    p = BAProblem(
-        np.asarray(T_cw, dtype=np.float64).reshape(-1, 4, 4),
-        np.asarray(fixed, dtype=bool).reshape(-1),
-        np.asarray(points, dtype=np.float64).reshape(-1, 3),
-        np.asarray(obs_kf, dtype=np.int64).reshape(-1),
-        np.asarray(obs_pt, dtype=np.int64).reshape(-1),
-        np.asarray(uv, dtype=np.float64).reshape(-1, 2),
-        np.asarray(inv_sigma2, dtype=np.float64).reshape(-1),
-        np.asarray(K, dtype=np.float64),
-    )
+    p = as_problem(T_cw, fixed, points, obs_kf, obs_pt, uv, inv_sigma2, K)
     if len(p.fixed) != len(p.T_cw):
         raise ValueError("fixed must have one flag per pose")
     deadline = time.perf_counter() + cfg.ba_time_budget_s if cfg.ba_time_budget_s > 0 else None

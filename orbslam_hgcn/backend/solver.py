@@ -49,20 +49,6 @@ class SolverError(RuntimeError):
     the child's traceback."""
 
 
-def as_problem(T_cw, fixed, points, obs_kf, obs_pt, uv, inv_sigma2, K) -> BAProblem:
-    """A :class:`BAProblem` of contiguous arrays with the dtypes the backend expects."""
-    return BAProblem(
-        np.ascontiguousarray(T_cw, dtype=np.float64).reshape(-1, 4, 4),
-        np.ascontiguousarray(fixed, dtype=bool).reshape(-1),
-        np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3),
-        np.ascontiguousarray(obs_kf, dtype=np.int64).reshape(-1),
-        np.ascontiguousarray(obs_pt, dtype=np.int64).reshape(-1),
-        np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 2),
-        np.ascontiguousarray(inv_sigma2, dtype=np.float64).reshape(-1),
-        np.ascontiguousarray(K, dtype=np.float64).reshape(3, 3),
-    )
-
-
 class InProcessSolver:
     """Run every optimisation in the calling thread."""
 

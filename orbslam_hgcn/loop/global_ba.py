@@ -22,10 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from orbslam_hgcn.backend.solver import InProcessSolver, as_problem
+from orbslam_hgcn.backend.bundle_adjustment import BAResult, as_problem
+from orbslam_hgcn.backend.solver import InProcessSolver
 from orbslam_hgcn.config import BackendConfig
 from orbslam_hgcn.map import Map
-from orbslam_hgcn.backend.bundle_adjustment import BAResult
 from orbslam_hgcn.map.window import BAWindow, apply_window, global_window
 
 log = logging.getLogger(__name__)

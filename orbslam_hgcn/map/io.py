@@ -33,9 +33,6 @@ import dataclasses
 import datetime
 import json
 import logging
-import os
-import zipfile
-import zlib
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +46,7 @@ from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.map.keyframe import KeyFrame
 from orbslam_hgcn.map.map import Map
 from orbslam_hgcn.map.mappoint import PointStore
+from orbslam_hgcn.npzfile import atomic_save_npz, read_versioned_npz
 
 log = logging.getLogger(__name__)
 
@@ -154,16 +152,7 @@ def map_to_arrays(m: Map, meta: dict[str, Any] | None = None) -> dict[str, np.nd
 def save_map(path: str | Path, m: Map, meta: dict[str, Any] | None = None) -> Path:
     """Write map ``m`` to ``path`` (atomically: a temporary file beside it, then a rename)."""
     arrays = map_to_arrays(m, meta)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    path = atomic_save_npz(path, arrays)
     log.info("wrote map (%d keyframes, %d points) to %s", len(arrays["kf_id"]), int((~arrays["pt_bad"]).sum()), path)
     return path
 
@@ -172,23 +161,8 @@ def read_header(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]
     """All arrays of a map file and its header dict; damage or another version is a
     MapFileError naming the file."""
     path = Path(path)
-    if not path.is_file():
-        raise MapFileError(f"{path}: map file not found")
-    if path.stat().st_size == 0:
-        raise MapFileError(f"{path}: map file is empty")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, KeyError) as exc:
-        raise MapFileError(f"{path}: not a readable map file (truncated or corrupt: {exc})") from None
-    magic = arrays.get("_magic")
-    if magic is None or magic.shape != () or str(magic) != MAGIC:
-        raise MapFileError(f"{path}: not an orbslam_hgcn map file (no '{MAGIC}' header)")
-    version = arrays.get("_format_version")
-    if version is None or version.shape != () or int(version) != FORMAT_VERSION:
-        found = "none" if version is None else str(version)
-        raise MapFileError(f"{path}: map format version {found} is not supported (this software reads version "
-                           f"{FORMAT_VERSION}); build the map again with 'orbslam-hgcn run ... --save-map'")
+    arrays = read_versioned_npz(path, "map", MAGIC, FORMAT_VERSION, MapFileError,
+                                "build the map again with 'orbslam-hgcn run ... --save-map'")
     try:
         meta = json.loads(str(arrays["_meta"]))
         if not isinstance(meta, dict):

@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from orbslam_hgcn.backend.solver import InProcessSolver, as_problem
+from orbslam_hgcn.backend.bundle_adjustment import as_problem
+from orbslam_hgcn.backend.solver import InProcessSolver
 from orbslam_hgcn.config import BackendConfig, LocalMappingConfig
 from orbslam_hgcn.map import KeyFrame, Map
 from orbslam_hgcn.map.window import apply_window, local_window

@@ -28,15 +28,13 @@ import datetime
 import importlib
 import json
 import logging
-import os
-import zipfile
-import zlib
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
 from orbslam_hgcn.errors import VocabularyError
+from orbslam_hgcn.npzfile import atomic_save_npz, read_versioned_npz
 from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector, l1_score
 
 log = logging.getLogger(__name__)
@@ -220,38 +218,6 @@ class Vocabulary(abc.ABC):
         return f"{type(self).__name__}({m.n_words} words, {m.descriptor_type}x{m.descriptor_dim}, {m.trained_on!r})"
 
 
-def atomic_save_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: bool = True) -> Path:
-    """Write ``arrays`` as an .npz at ``path`` via a temporary file and a rename.
-
-    An exception (or Ctrl-C) during the write removes the temporary file and leaves any
-    existing ``path`` untouched.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            (np.savez_compressed if compress else np.savez)(fh, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
-
-
-def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
-    """All arrays of an .npz file, read eagerly; any damage is a VocabularyError."""
-    if not path.is_file():
-        raise VocabularyError(f"{path}: {what} file not found")
-    if path.stat().st_size == 0:
-        raise VocabularyError(f"{path}: {what} file is empty")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, KeyError) as exc:
-        raise VocabularyError(f"{path}: not a readable {what} file (truncated or corrupt: {exc})") from None
-
-
 def load_vocabulary(path: str | Path, expected_kind: str | None = None) -> Vocabulary:
     """Load any vocabulary file, dispatching on its kind.
 
@@ -261,17 +227,8 @@ def load_vocabulary(path: str | Path, expected_kind: str | None = None) -> Vocab
     path = Path(path)
     if not path.exists() and str(path) in DEFAULT_FILES:
         path = DEFAULT_FILES[str(path)]
-    arrays = read_npz(path, "vocabulary")
-    magic = arrays.get("_magic")
-    if magic is None or magic.shape != () or str(magic) != MAGIC:
-        raise VocabularyError(f"{path}: not an orbslam_hgcn vocabulary file (no '{MAGIC}' header)")
-    version = arrays.get("_format_version")
-    if version is None or version.shape != () or int(version) != FORMAT_VERSION:
-        found = "none" if version is None else str(version)
-        raise VocabularyError(
-            f"{path}: vocabulary format version {found} is not supported (this software reads "
-            f"version {FORMAT_VERSION}); retrain it with 'orbslam-hgcn vocab train'"
-        )
+    arrays = read_versioned_npz(path, "vocabulary", MAGIC, FORMAT_VERSION, VocabularyError,
+                                "retrain it with 'orbslam-hgcn vocab train'")
     kind = str(arrays.get("_kind", ""))
     if kind not in KIND_MODULES:
         raise VocabularyError(f"{path}: unknown vocabulary kind {kind!r} (known: {', '.join(KIND_MODULES)})")

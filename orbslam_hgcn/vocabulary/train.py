@@ -29,7 +29,8 @@ from tqdm import tqdm
 from orbslam_hgcn.config import HgcnTrainConfig, ORBConfig, TreeTrainConfig
 from orbslam_hgcn.datasets.base import IMAGE_SUFFIXES
 from orbslam_hgcn.errors import DatasetError, OrbslamError, VocabularyError
-from orbslam_hgcn.vocabulary.base import Vocabulary, atomic_save_npz, read_npz
+from orbslam_hgcn.npzfile import atomic_save_npz, read_npz
+from orbslam_hgcn.vocabulary.base import Vocabulary
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +141,7 @@ def extract_descriptors(
     done: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     if cache is not None and cache.is_file():
         try:
-            arrays = read_npz(cache, "descriptor cache")
+            arrays = read_npz(cache, "descriptor cache", VocabularyError)
             if str(arrays["settings"]) == settings:
                 starts = np.concatenate([[0], np.cumsum(arrays["counts"])])
                 for key, a, b in zip(arrays["keys"].tolist(), starts[:-1], starts[1:]):
