@@ -98,9 +98,8 @@ def save_system_map(path: str | Path, system: Any, vocab_name: str | None = None
 def install_map(system: Any, m: Map, localization: bool = True) -> None:
     """Make ``m`` the map of ``system`` (before its first frame).
 
-    Replaces system.map and the tracker's map (a new tracker generation, state LOST so the
-    next frame is relocalised), points the local mapper, loop closer and relocaliser at it
-    through their ``reset(map)``, and rebuilds the keyframe database from the keyframes'
+    Replaces the tracker's map (a new tracker generation, state LOST so the next frame is
+    relocalised), hands it to the other stages (:meth:`System.use_map`), and rebuilds the keyframe database from the keyframes'
     BoW vectors. ``localization``: the tracker then never makes keyframes nor resets the map.
     """
     if system.database is None or system.relocalizer is None:
@@ -114,14 +113,10 @@ def install_map(system: Any, m: Map, localization: bool = True) -> None:
                            f"{system.camera.width}x{system.camera.height}")
     if camera_to_dict(kf_camera) != camera_to_dict(system.camera):
         log.warning("the map's camera %s differs from the sequence's %s", kf_camera, system.camera)
-    system.map = m
     system.tracker.reset(m)
     system.tracker.state = TrackingState.LOST
     system.tracker.localization = bool(localization)
-    system.mapper.reset(m)
-    for stage in (system.loop_closer, system.relocalizer):
-        if stage is not None and hasattr(stage, "reset"):
-            stage.reset(m)
+    system.use_map(m)
     system.database.clear()
     for kf in m.keyframes():
         system.database.add(kf.id, kf.bow)

@@ -178,11 +178,6 @@ class System:
         if not isinstance(self.tracker.map.lock, TrackingFirstLock):
             self.tracker.map.lock = TrackingFirstLock()
 
-    @property
-    def map_lock(self) -> Any:
-        """The lock that guards the current map (hold it to read the map while stages run)."""
-        return self.map.lock
-
     def _mapping_idle(self) -> bool:
         return self.stages.mapping_idle()
 
@@ -250,16 +245,23 @@ class System:
             return
         self.stages.submit(kf)
 
-    def _reset(self, frame_id: int, timestamp: float) -> None:
-        self.n_resets += 1
-        self.stages.sync()  # the stages finish the keyframes of the discarded map first
+    def use_map(self, m: Map) -> None:
+        """Make ``m`` (already the tracker's map) the map of every stage: the stages first
+        finish the keyframes of the previous map, then the local mapper, loop closer and
+        relocaliser are reset onto ``m``."""
+        if self._stages is not None:
+            self._stages.sync()
         if not self.sequential:
             self._share_map()
-        self.map = self.tracker.map
-        self.mapper.reset(self.map)
+        self.map = m
+        self.mapper.reset(m)
         for stage in (self.loop_closer, self.relocalizer):
             if stage is not None and hasattr(stage, "reset"):
-                stage.reset(self.map)
+                stage.reset(m)
+
+    def _reset(self, frame_id: int, timestamp: float) -> None:
+        self.n_resets += 1
+        self.use_map(self.tracker.map)
         self.events.append({"frame": frame_id, "t": timestamp, "event": "reset"})
 
     # --- a whole sequence ----------------------------------------------------------------

@@ -16,8 +16,8 @@ records for :class:`~orbslam_hgcn.viz.rerun_logger.RerunLogger`, on the ``frame`
   rebuilt from the corrected keyframes replace the old ones.
 
 It uses only the system's public attributes (``map``, ``tracker``, ``loop_closer``,
-``camera``, ``camera_trajectory()``) and copies the map under its lock (``system.map_lock``
-when the system has one, else ``Map.lock``); it never changes the map.
+``camera``, ``camera_trajectory()``) and copies the map under its lock (``Map.lock``); it
+never changes the map.
 
 The ATE is the RMSE of the camera centres after the least-squares similarity alignment of
 the estimate onto the ground truth (Umeyama, PAMI 1991; the same optimum as Horn's
@@ -95,11 +95,6 @@ def gt_in_map(gt_w: np.ndarray, S_gt_est: np.ndarray) -> np.ndarray:
     return (np.asarray(gt_w, dtype=np.float64) - t) @ sR / (s * s)
 
 
-def map_lock(system: Any) -> Any:
-    """The lock that guards the system's map: ``system.map_lock`` if it has one, else ``Map.lock``."""
-    return getattr(system, "map_lock", None) or system.map.lock
-
-
 def map_snapshot_of(system: Any) -> MapSnapshot:
     """The system's map as a :class:`MapSnapshot`, copied under the map's lock.
 
@@ -107,7 +102,7 @@ def map_snapshot_of(system: Any) -> MapSnapshot:
     edges are the pairs meeting the covisibility threshold; loop edges as recorded.
     """
     m = system.map
-    with map_lock(system):
+    with system.map.lock:
         snap = map_snapshot(m)
         obs = m.n_observations(snap.point_ids)
     return MapSnapshot(
@@ -260,7 +255,7 @@ class LiveViz:
 
     def _replace_trajectory(self, system: Any, index: int) -> None:
         """Camera centres rebuilt from the (corrected) keyframes replace the tracked ones."""
-        with map_lock(system):
+        with system.map.lock:
             traj = system.camera_trajectory()
         centres = traj.poses[:, :3, 3] if len(traj) else np.zeros((0, 3))
         self.logger.log_trajectory(centres, index)
