@@ -597,3 +597,6 @@ class ThreadsConfig:
     # Threaded only: solve local and global BA in child processes. gtsam keeps the GIL
     # while it iterates, so a BA solved in a thread of this process stalls tracking.
     process_solver: bool = True
+    # Threaded only: System.run reads the next image and extracts its ORB features on a
+    # thread of its own while the current frame is tracked (OpenCV releases the GIL).
+    prefetch: bool = True

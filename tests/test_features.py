@@ -107,6 +107,40 @@ def test_quadtree_matches_orbslam_reference():
         assert len(set(ours.tolist()) & ref) >= 0.9 * n_wanted
 
 
+def test_weak_corners_only_where_a_cell_has_no_strong_one(extractor):
+    # Left half: high-contrast blobs (many FAST scores above 20); right half: the same
+    # pattern at 60 grey levels of contrast (scores between 7 and 20 only). ORB-SLAM's cells
+    # keep their strong corners only, and fall back to the weak ones where none is strong.
+    rng = np.random.default_rng(3)
+    pattern = cv2.resize(rng.random((60, 80)).astype(np.float32), (640, 480), interpolation=cv2.INTER_CUBIC)
+    img = np.where(np.arange(640)[None, :] < 320, 30 + 200 * pattern, 60 + 60 * pattern)
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    maps = extractor.maps(*img.shape)
+    levels = build_pyramid(img, 1.2, 8)
+    x, y, level, score, cell, _ = extractor._detect(levels, maps)
+    lvl0 = level == 0
+    window = levels[0][16:464, 16:624]  # level 0 inside ORB-SLAM's border (edge 19 - 3)
+
+    def fast_cells(threshold):
+        pts = np.asarray(cv2.KeyPoint_convert(cv2.FastFeatureDetector_create(threshold, True).detect(window)))
+        pts = pts.astype(int) + 16
+        return pts, maps.cell_maps[0][pts[:, 1], pts[:, 0]]
+
+    strong_pts, strong_cells = fast_cells(20)
+    weak_pts, weak_cells = fast_cells(7)
+    weak = lvl0 & (score < 20)
+    assert len(strong_pts) > 500 and weak.sum() > 200
+    # Every strong corner is kept; weak ones only in cells without a strong one, and those
+    # lie in the low-contrast half; every such cell was searched.
+    found = set(zip(x[lvl0].tolist(), y[lvl0].tolist()))
+    assert set(map(tuple, strong_pts.tolist())) <= found
+    assert not np.isin(cell[weak], strong_cells).any()
+    assert score[weak].min() >= 7 and np.all(x[weak] >= 320 - 19)
+    assert set(weak_cells.tolist()) - set(strong_cells.tolist()) <= set(cell[weak].tolist())
+    kps = extractor.extract(img)
+    assert abs(len(kps) - 1000) <= 50 and np.any(kps.uv_raw[:, 0] > 400)
+
+
 def _grid_stats(uv, width, height, gx=8, gy=6):
     cx = np.clip((uv[:, 0] * gx / width).astype(int), 0, gx - 1)
     cy = np.clip((uv[:, 1] * gy / height).astype(int), 0, gy - 1)

@@ -88,6 +88,23 @@ def test_threaded_run_completes_cleanly_and_tracks_as_well(seq, sequential_runs,
     assert any(system.frame_optimising)
 
 
+def test_prefetched_features_come_from_the_extractor_the_state_needs(seq, threaded_run):
+    # Threaded runs extract frame i + 1 while frame i is tracked: the initial keyframes
+    # must still have the initialisation extractor's features, the later ones the normal
+    # extractor's, exactly as a direct extraction gives them.
+    system, _ = threaded_run
+    kfs = sorted(system.map.keyframes(), key=lambda k: k.id)
+    n_init, n = system.init_extractor.config.n_features, system.extractor.config.n_features
+    assert n_init == 2 * n
+    assert len(kfs[0].keypoints) > 1.5 * n
+    for kf in (kfs[0], kfs[-1]):
+        extractor = system.init_extractor if kf is kfs[0] else system.extractor
+        direct = extractor.extract(seq[kf.frame_id].image, seq.camera)
+        np.testing.assert_array_equal(kf.keypoints.uv_raw, direct.uv_raw)
+        np.testing.assert_array_equal(kf.keypoints.desc, direct.desc)
+    assert len(kfs[-1].keypoints) <= n
+
+
 def test_stage_exception_reaches_the_caller(seq):
     system = System(seq.camera, sequential=False)
 

@@ -5,12 +5,11 @@ FAST corners per cell of about 30 px with threshold 20, falls back to threshold 
 where none is found, and then keeps the requested number of corners with a quadtree
 (``DistributeOctTree``): nodes are split into four until there are as many nodes as wanted
 features, splitting the most populated nodes first at the last step, and the strongest
-corner of each node survives. Both steps are implemented here on whole arrays:
+corner of each node survives. Here:
 
-* one FAST pass at the low threshold gives every corner and its score; a corner passes the
-  high threshold exactly when its score is at least that threshold (OpenCV's FAST score is
-  the largest threshold at which the point is still a corner), so the per-cell fallback is a
-  mask over cells;
+* the per-cell thresholds are applied by :class:`~orbslam_hgcn.features.orb.ORBExtractor`
+  (one high-threshold pass per level, then the low threshold on the cells left empty);
+  :func:`cell_ids` gives the cell of every corner;
 * the quadtree is evaluated on Morton codes of the corner positions, which give the node of
   every corner at every depth without building the tree, for all pyramid levels at once.
 """
@@ -73,23 +72,6 @@ def cell_ids(x: np.ndarray, y: np.ndarray, group: np.ndarray, bounds: np.ndarray
     cx = np.clip(((x - min_x[g] - 3) // w_cell[g]).astype(np.int64), 0, n_cols[g] - 1)
     cy = np.clip(((y - min_y[g] - 3) // h_cell[g]).astype(np.int64), 0, n_rows[g] - 1)
     return first_cell[g] + cy * n_cols[g] + cx
-
-
-def cell_threshold_mask(cell: np.ndarray, score: np.ndarray, ini_th: float) -> np.ndarray:
-    """(N,) bool: corners kept by ORB-SLAM's per-cell FAST threshold with fallback.
-
-    cell: (N,) int cell index of each corner (:func:`cell_ids`); score: (N,) FAST scores,
-    all corners found with the low threshold. In a cell holding a corner with
-    score >= ini_th only such corners are kept; in the other cells every corner is kept
-    (the low-threshold fallback).
-    """
-    cell = np.asarray(cell, dtype=np.int64)
-    if len(cell) == 0:
-        return np.zeros(0, dtype=bool)
-    strong = score >= ini_th
-    has_strong = np.zeros(int(cell.max()) + 1, dtype=bool)
-    has_strong[cell[strong]] = True
-    return strong | ~has_strong[cell]
 
 
 def _spread_table() -> np.ndarray:

@@ -11,8 +11,11 @@ Choices of this implementation:
 * the pyramid is built level from level by bilinear resizing, as ORB-SLAM;
 * the detection cell and quadtree node of every pixel are tabulated once per image size
   (:mod:`orbslam_hgcn.features.pyramid`);
-* one FAST pass at the low threshold replaces ORB-SLAM's per-cell passes, and the quadtree
-  is evaluated on whole arrays (see :mod:`orbslam_hgcn.features.distribute`);
+* FAST runs once per level at the high threshold (20); only the cells where it found no
+  corner are searched again at the low threshold (7), each on its own window, as ORB-SLAM
+  does per cell (a corner's FAST score does not depend on the threshold, so the high-pass
+  corners are exactly those of ORB-SLAM's cells); the quadtree is evaluated on whole
+  arrays (see :mod:`orbslam_hgcn.features.distribute`);
 * descriptors come from ``cv2.ORB.compute`` on each level image (which blurs it with a
   7x7, sigma 2 Gaussian, as ORB-SLAM does) with the orientation computed here.
 """
@@ -27,7 +30,7 @@ import numpy as np
 from numpy.lib.stride_tricks import as_strided
 
 from orbslam_hgcn.config import ORBConfig
-from orbslam_hgcn.features.distribute import cell_threshold_mask, distribute_quadtree, features_per_level
+from orbslam_hgcn.features.distribute import distribute_quadtree, features_per_level
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.features.pyramid import PyramidMaps, build_pyramid, pyramid_maps
 from orbslam_hgcn.geometry.camera import PinholeCamera
@@ -109,7 +112,8 @@ class ORBExtractor:
             [float(np.float32(c.scale_factor**level)) for level in range(c.n_levels)], dtype=np.float64
         )
         self.n_per_level = features_per_level(c.n_features, c.scale_factor, c.n_levels)
-        self._fast = cv2.FastFeatureDetector_create(int(c.min_th_fast), True)
+        self._fast_hi = cv2.FastFeatureDetector_create(int(c.ini_th_fast), True)
+        self._fast_lo = cv2.FastFeatureDetector_create(int(c.min_th_fast), True)
         # One-level ORB used only to compute descriptors of given keypoints on a level image.
         self._orb = cv2.ORB_create(
             nfeatures=c.n_features,
@@ -126,9 +130,11 @@ class ORBExtractor:
         return pyramid_maps(width, height, c.scale_factor, c.n_levels, c.edge_threshold, float(c.cell_size))
 
     def _detect(self, levels: list[np.ndarray], maps: PyramidMaps) -> tuple[np.ndarray, ...]:
-        """FAST corners at the low threshold on every level, inside ORB-SLAM's border.
+        """FAST corners of every level inside ORB-SLAM's border, with its per-cell thresholds.
 
-        Returns (x, y, level, score, cell, key), each (N,) over all levels.
+        Each level is searched at the high threshold; cells left without a corner are
+        searched again at the low threshold on their own window (the cell plus FAST's 3 px
+        margin). Returns (x, y, level, score, cell, key), each (N,) over all levels.
         """
         lo = self.config.edge_threshold - _FAST_MARGIN
         parts = []
@@ -137,19 +143,35 @@ class ORBExtractor:
             if w <= 2 * self.config.edge_threshold or h <= 2 * self.config.edge_threshold:
                 continue
             # FAST skips 3 px at the window border, so corners lie edge_threshold inside.
-            kps = self._fast.detect(img[lo : h - lo, lo : w - lo])
-            if not kps:
-                continue
-            pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.intp) + lo
-            x, y = pts[:, 0], pts[:, 1]
-            score = np.array([k.response for k in kps], dtype=np.float32)
-            parts.append(
-                (x, y, np.full(len(x), level, np.int64), score, maps.cell_maps[level][y, x], maps.key_maps[level][y, x])
-            )
+            found = [self._corners(self._fast_hi, img, lo, h - lo, lo, w - lo)]
+            cells = maps.cell_maps[level]
+            first, last = maps.level_cells[level], maps.level_cells[level + 1]
+            covered = np.zeros(last - first, dtype=bool)
+            covered[cells[found[0][1], found[0][0]] - first] = True
+            for cell in np.flatnonzero(~covered) + first:
+                x0, x1, y0, y1 = maps.cell_boxes[cell].tolist()
+                x, y, score = self._corners(
+                    self._fast_lo, img, max(y0 - _FAST_MARGIN, lo), min(y1 + _FAST_MARGIN, h - lo),
+                    max(x0 - _FAST_MARGIN, lo), min(x1 + _FAST_MARGIN, w - lo),
+                )  # fmt: skip
+                mine = cells[y, x] == cell
+                found.append((x[mine], y[mine], score[mine]))
+            x, y, score = (np.concatenate(col) for col in zip(*found))
+            parts.append((x, y, np.full(len(x), level, np.int64), score, cells[y, x], maps.key_maps[level][y, x]))
         if not parts:
             empty = np.zeros(0, np.int64)
             return empty, empty, empty, np.zeros(0, np.float32), empty, empty
         return tuple(np.concatenate(col) for col in zip(*parts))
+
+    @staticmethod
+    def _corners(fast: cv2.FastFeatureDetector, img: np.ndarray, r0: int, r1: int, c0: int, c1: int):
+        """(x, y, score) of the FAST corners of ``img[r0:r1, c0:c1]`` in level pixels."""
+        kps = fast.detect(img[r0:r1, c0:c1]) if r1 - r0 > 2 * _FAST_MARGIN and c1 - c0 > 2 * _FAST_MARGIN else ()
+        if not kps:
+            return np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0, np.float32)
+        pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.intp)
+        score = np.fromiter((k.response for k in kps), dtype=np.float32, count=len(kps))
+        return pts[:, 0] + c0, pts[:, 1] + r0, score
 
     def extract(self, image: np.ndarray, camera: PinholeCamera | None = None) -> KeypointSet:
         """ORB keypoints and descriptors of one image.
@@ -164,9 +186,8 @@ class ORBExtractor:
         c = self.config
         levels = build_pyramid(image, c.scale_factor, c.n_levels)
         x, y, level, score, cell, key = self._detect(levels, self.maps(*image.shape))
-        cand = np.flatnonzero(cell_threshold_mask(cell, score, c.ini_th_fast))
-        keep = distribute_quadtree(key[cand], score[cand], self.n_per_level)
-        sel = cand[keep[np.argsort(key[cand[keep]], kind="stable")]]  # by level, then quadtree order
+        keep = distribute_quadtree(key, score, self.n_per_level)
+        sel = keep[np.argsort(key[keep], kind="stable")]  # by level, then quadtree order
         x, y, level, score = x[sel], y[sel], level[sel], score[sel]
         angle = np.zeros(len(sel), dtype=np.float32)
         desc = np.zeros((len(sel), 32), dtype=np.uint8)

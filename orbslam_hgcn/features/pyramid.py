@@ -57,12 +57,17 @@ class PyramidMaps:
                (:func:`~orbslam_hgcn.features.distribute.cell_ids`), -1 outside the area
     key_maps:  L arrays (h, w) int64, the quadtree key of each pixel
                (:func:`~orbslam_hgcn.features.distribute.quadtree_keys`), -1 outside
+    cell_boxes: (C, 4) int64 pixel box (x0, x1, y0, y1), ends exclusive, of each cell
+               over all levels
+    level_cells: (L + 1,) int64 first cell index of each level (and the total count)
     """
 
     sizes: np.ndarray
     bounds: np.ndarray
     cell_maps: list[np.ndarray]
     key_maps: list[np.ndarray]
+    cell_boxes: np.ndarray
+    level_cells: np.ndarray
 
     @classmethod
     def create(
@@ -86,7 +91,21 @@ class PyramidMaps:
                 kmap[lo : h - lo, lo : w - lo] = quadtree_keys(x, y, g, bounds).reshape(yy.shape)
             cell_maps.append(cmap)
             key_maps.append(kmap)
-        return cls(np.asarray(sizes, dtype=np.int64), bounds, cell_maps, key_maps)
+        n_cells = max((int(c.max()) + 1 for c in cell_maps), default=0)
+        big = np.iinfo(np.int64).max
+        x0, y0 = np.full(n_cells, big, np.int64), np.full(n_cells, big, np.int64)
+        x1, y1 = np.full(n_cells, -1, np.int64), np.full(n_cells, -1, np.int64)
+        level_cells = np.zeros(len(sizes) + 1, dtype=np.int64)
+        for level, cmap in enumerate(cell_maps):
+            ys, xs = np.nonzero(cmap >= 0)
+            ids = cmap[ys, xs]
+            np.minimum.at(x0, ids, xs)
+            np.maximum.at(x1, ids, xs + 1)
+            np.minimum.at(y0, ids, ys)
+            np.maximum.at(y1, ids, ys + 1)
+            level_cells[level + 1] = max(level_cells[level], int(cmap.max()) + 1)
+        boxes = np.stack([x0, x1, y0, y1], axis=1)
+        return cls(np.asarray(sizes, dtype=np.int64), bounds, cell_maps, key_maps, boxes, level_cells)
 
 
 @functools.lru_cache(maxsize=8)

@@ -22,6 +22,7 @@ import dataclasses
 import logging
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,7 @@ from orbslam_hgcn.config import (
 )
 from orbslam_hgcn.datasets import Sequence
 from orbslam_hgcn.datasets.base import FrameRecord
+from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.loop.closer import LoopCloser
@@ -96,6 +98,54 @@ class Configs:
             for f in dataclasses.fields(cls)
         }
         return cls(**kw)
+
+
+@dataclass(frozen=True)
+class Features:
+    """An image's ORB keypoints, the extractor that found them, when extraction started
+    (``time.perf_counter``) and how long it took (ms)."""
+
+    extractor: ORBExtractor
+    keypoints: KeypointSet
+    started: float
+    ms: float
+
+
+class _Prefetch:
+    """Reads frame i + 1 of a sequence and extracts its features on a thread of its own
+    while frame i is tracked (threaded mode of :meth:`System.run`).
+
+    Frames are read in order, one at a time, by that thread only (video files need it).
+    The extractor is chosen from the tracker's state when the job starts; if the state
+    has changed when the frame is processed, :meth:`System.process` extracts again.
+    """
+
+    def __init__(self, system: System, sequence: Sequence, n: int) -> None:
+        self.system, self.sequence, self.n = system, sequence, n
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="orbslam-prefetch")
+        self._next: tuple[int, Future] | None = None
+
+    def _job(self, i: int) -> tuple[FrameRecord, Features]:
+        rec = self.sequence[i]
+        extractor = self.system._extractor_now()
+        t0 = time.perf_counter()
+        kps = self.system._extract(rec.image, extractor)
+        return rec, Features(extractor, kps, t0, 1000.0 * (time.perf_counter() - t0))
+
+    def take(self, i: int) -> tuple[FrameRecord, Features]:
+        """Frame ``i`` and its features; starts on frame ``i + 1``."""
+        if self._next is not None and self._next[0] == i:
+            out = self._next[1].result()
+        else:
+            out = self._job(i)
+        self._next = (i + 1, self._pool.submit(self._job, i + 1)) if i + 1 < self.n else None
+        return out
+
+    def close(self) -> None:
+        if self._next is not None:
+            self._next[1].cancel()
+            self._next = None
+        self._pool.shutdown(wait=True)
 
 
 @dataclass
@@ -205,23 +255,43 @@ class System:
             log.error("while stopping after an error: %s", exc)
 
     # --- one frame -----------------------------------------------------------------------
-    def process(self, image: np.ndarray, timestamp: float, frame_id: int) -> TrackResult:
-        """Extract, track and map one image ((H, W) uint8 gray or (H, W, 3) BGR)."""
+    def _extractor_now(self) -> ORBExtractor:
+        """The extractor the tracker's state asks for (more features while initialising)."""
+        initializing = self.tracker.state == TrackingState.NOT_INITIALIZED
+        return self.init_extractor if initializing else self.extractor
+
+    def _extract(self, image: np.ndarray, extractor: ORBExtractor) -> KeypointSet:
+        if image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        return extractor.extract(image, self.camera)
+
+    def process(
+        self, image: np.ndarray, timestamp: float, frame_id: int, features: Features | None = None
+    ) -> TrackResult:
+        """Extract, track and map one image ((H, W) uint8 gray or (H, W, 3) BGR).
+
+        features: the image's keypoints already extracted, with the extractor used; they
+        are extracted again if the tracker now needs the other extractor. The frame's
+        latency (``timings["frame"]``) then counts from the start of that extraction.
+        """
         t0 = time.perf_counter()
         stages = self.stages
         stages.check()
         started, optimising = stages.activity.started, stages.optimising
         if not self.tracker.can_recover:
             return self.tracker.skip(frame_id, timestamp)
-        if image.ndim == 3:
-            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        initializing = self.tracker.state == TrackingState.NOT_INITIALIZED
-        kps = (self.init_extractor if initializing else self.extractor).extract(image, self.camera)
+        extractor = self._extractor_now()
+        if features is not None and features.extractor is extractor:
+            kps, extraction_ms = features.keypoints, features.ms
+            t0 = min(t0, features.started)
+        else:
+            kps = self._extract(image, extractor)
+            extraction_ms = 1000.0 * (time.perf_counter() - t0)
         t1 = time.perf_counter()
         with first(self.tracker.map.lock):
             self.timings["lock_wait"].append(1000.0 * (time.perf_counter() - t1))
             result = self.tracker.track(Frame(frame_id, timestamp, self.camera, kps))
-        self.timings["extraction"].append(1000.0 * (t1 - t0))
+        self.timings["extraction"].append(extraction_ms)
         if result.state == TrackingState.OK and not result.initialized:
             self.timings["tracking"].append(result.time_ms)
             self.timings["tracking_cpu"].append(result.cpu_ms)
@@ -275,11 +345,12 @@ class System:
         bar = tqdm(total=n, unit="frame", disable=not show, dynamic_ncols=True)
         t0 = time.perf_counter()
         done, interrupted = 0, False
+        prefetch = _Prefetch(self, sequence, n) if not self.sequential and self.configs.threads.prefetch else None
         try:
             for i in range(n):
-                rec = sequence[i]
+                rec, features = prefetch.take(i) if prefetch is not None else (sequence[i], None)
                 t_frame = time.perf_counter()
-                result = self.process(rec.image, rec.timestamp, rec.index)
+                result = self.process(rec.image, rec.timestamp, rec.index, features)
                 if self.observers:
                     with self.map.lock:
                         for observe in self.observers:
@@ -301,8 +372,12 @@ class System:
             log.warning("interrupted after %d frames; saving what exists", done)
         except BaseException:
             bar.close()
+            if prefetch is not None:
+                prefetch.close()
             self._close_quietly()
             raise
+        if prefetch is not None:
+            prefetch.close()
         bar.close()
         try:
             self.close(drain=True)
