@@ -11,7 +11,7 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import make_T
 from orbslam_hgcn.map import Frame, Map, MapSnapshot, check_invariants, essential_graph, predict_scale, snapshot
 from orbslam_hgcn.map.graph import COVISIBILITY, LOOP, TREE
-from orbslam_hgcn.map.mappoint import distinctive_descriptor, hamming_matrix, normal_and_depth
+from orbslam_hgcn.map.mappoint import distinctive_descriptor, distinctive_descriptors, hamming_matrix, normal_and_depth
 from orbslam_hgcn.map.window import apply_window, local_window
 
 CAM = PinholeCamera(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
@@ -249,6 +249,12 @@ def test_point_descriptor_viewing_range_and_scale_prediction():
         noisy.append(np.packbits(b))
     stack = np.array(noisy[:3] + [base] + noisy[3:])
     np.testing.assert_array_equal(distinctive_descriptor(stack), base)
+    # Many points at once (sizes 1 to 8, the centre placed at different rows) give what
+    # the one-point form gives.
+    blocks = [stack[:k] for k in (1, 2, 3)] + [np.roll(stack, r, axis=0) for r in range(5)]
+    batched = distinctive_descriptors(np.concatenate(blocks), np.array([len(b) for b in blocks]))
+    np.testing.assert_array_equal(batched, np.stack([distinctive_descriptor(b) for b in blocks]))
+    np.testing.assert_array_equal(batched[3:], np.tile(base, (5, 1)))
 
     P = np.array([0.0, 0.0, 4.0])
     normal, dmin, dmax = normal_and_depth(P, np.array([[-1.0, 0, 0], [1.0, 0, 0]]), np.array([-1.0, 0, 0]), 2, SCALES)

@@ -1,6 +1,7 @@
 """Local mapping: triangulation, fusion and culling on scenes with known geometry, and map
 invariants after a run on a synthetic sequence."""
 
+import threading
 from collections import Counter
 
 import numpy as np
@@ -14,6 +15,8 @@ from orbslam_hgcn.geometry.epipolar import fundamental_12_from_poses
 from orbslam_hgcn.geometry.se3 import make_T
 from orbslam_hgcn.map import Frame, Map, check_invariants
 from orbslam_hgcn.mapping.culling import cull_recent_points, redundant_keyframes
+from orbslam_hgcn.mapping import fuse as fuse_module
+from orbslam_hgcn.mapping import triangulate as triangulate_module
 from orbslam_hgcn.mapping.fuse import search_in_neighbors
 from orbslam_hgcn.mapping.triangulate import create_new_points, epipolar_candidate_pairs
 from orbslam_hgcn.pipeline.system import System
@@ -66,7 +69,51 @@ def test_epipolar_candidates_hold_the_true_pairs():
     assert len(i1) < 0.05 * len(s1) * len(s2)  # and the constraint prunes most pairs
 
 
-def test_triangulation_recovers_points_without_vocabulary():
+class _RecordingLock:
+    """Re-entrant lock that counts how often it was released completely."""
+
+    def __init__(self):
+        self._lock = threading.RLock()
+        self.depth = 0
+        self.releases = 0
+
+    def acquire(self, blocking=True, timeout=-1):
+        ok = self._lock.acquire(blocking, timeout)
+        self.depth += int(ok)
+        return ok
+
+    def release(self):
+        self.depth -= 1
+        self.releases += int(self.depth == 0)
+        self._lock.release()
+
+    __enter__ = acquire
+
+    def __exit__(self, *exc):
+        self.release()
+
+
+def _record_calls(monkeypatch, module, name, lock):
+    """Wrap module.name to log (lock depth, complete releases so far) at each call."""
+    calls, inner = [], getattr(module, name)
+
+    def wrapped(*args, **kwargs):
+        calls.append((lock.depth, lock.releases))
+        return inner(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, wrapped)
+    return calls
+
+
+def _locked_one_at_a_time(calls):
+    """Each call ran under the lock, and the lock was let go between two calls (so a
+    waiting tracker gets in)."""
+    assert len(calls) >= 2
+    assert all(depth >= 1 for depth, _ in calls)
+    assert all(b[1] > a[1] for a, b in zip(calls, calls[1:]))
+
+
+def test_triangulation_recovers_points_without_vocabulary(monkeypatch):
     rng = np.random.default_rng(1)
     X, desc = _world(rng)
     m = Map()
@@ -80,7 +127,10 @@ def test_triangulation_recovers_points_without_vocabulary():
     m.update_points(np.array(list(pid.values())))
     m.update_connections(kf1.id)
     m.update_connections(kf2.id)
+    m.lock = lock = _RecordingLock()
+    calls = _record_calls(monkeypatch, triangulate_module, "triangulate_with_neighbour", lock)
     new = create_new_points(m, kf2, LocalMappingConfig())
+    assert len(calls) == 1 and calls[0][0] >= 1  # one neighbour, matched under the lock
     expected = len(np.intersect1d(s1, s2)) - len(shared)
     assert len(new) >= 0.95 * expected
     truth2 = {int(j): int(t) for j, t in enumerate(s2)}
@@ -150,7 +200,7 @@ def test_recent_point_culling_rules():
     assert check_invariants(m) == []
 
 
-def test_fusion_merges_duplicated_points():
+def test_fusion_merges_duplicated_points(monkeypatch):
     rng = np.random.default_rng(5)
     m, kfs, X, desc, seens, pid = _covisible_group(rng, n_kf=3)
     # Two more keyframes whose features were given duplicates of the same points.
@@ -168,7 +218,11 @@ def test_fusion_merges_duplicated_points():
     m.update_connections(kf3.id)
     m.update_connections(kf4.id)
     n_before = m.n_points()
+    m.lock = lock = _RecordingLock()
+    calls = _record_calls(monkeypatch, fuse_module, "fuse_into", lock)
     stats = search_in_neighbors(m, kf3, LocalMappingConfig())
+    assert len(calls) == stats["targets"] + 1
+    _locked_one_at_a_time(calls)
     n_dup = len(common) - len(bridge)
     assert stats["merged"] >= 0.9 * n_dup
     assert m.n_points() <= n_before - 0.9 * n_dup

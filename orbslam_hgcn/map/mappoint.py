@@ -41,6 +41,28 @@ def distinctive_descriptor(desc: np.ndarray) -> np.ndarray:
     return desc[int(np.argmin(median))].copy()
 
 
+def distinctive_descriptors(desc: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """:func:`distinctive_descriptor` of many points at once.
+
+    desc: (M, 32) uint8 descriptors of the observations of all points, point after point;
+    sizes: (P,) int observations of each point (>= 1, summing to M). Returns (P, 32)
+    uint8. Points with the same number of observations are handled as one array.
+    """
+    desc = np.ascontiguousarray(desc, dtype=np.uint8)
+    words = desc.view(np.uint64)  # (M, 4): popcounts of 64-bit words
+    sizes = np.asarray(sizes, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    pick = starts.copy()  # row of desc chosen for each point (the first one for n <= 2)
+    for n in np.unique(sizes[sizes > 2]).tolist():
+        pts = np.flatnonzero(sizes == n)
+        rows = starts[pts][:, None] + np.arange(n)  # (m, n)
+        block = words[rows]  # (m, n, 4)
+        D = np.bitwise_count(block[:, :, None, :] ^ block[:, None, :, :]).sum(axis=3, dtype=np.int32)
+        median = np.sort(D, axis=2)[:, :, (n - 1) // 2]  # (m, n)
+        pick[pts] = starts[pts] + np.argmin(median, axis=1)
+    return desc[pick]
+
+
 def normal_and_depth(
     position: np.ndarray,
     centers: np.ndarray,
@@ -119,10 +141,8 @@ def refresh_points(store: PointStore, kfs: dict, pids: np.ndarray, descriptors: 
     dmax = np.linalg.norm(s.position[ids] - ref_c, axis=1) * level_scale
     s.normal[ids], s.max_dist[ids], s.min_dist[ids] = normal, dmax, dmax / top_scale
     if descriptors:
-        bounds = np.flatnonzero(np.diff(rows_a)) + 1
         all_desc = np.stack([kfs[k].keypoints.desc[f] for k, f in zip(kf_of, feat_of)])
-        for pid, block in zip(ids, np.split(all_desc, bounds)):
-            s.desc[pid] = distinctive_descriptor(block)
+        s.desc[ids] = distinctive_descriptors(all_desc, np.bincount(rows_a, minlength=len(ids)))
 
 
 class PointStore:

@@ -80,23 +80,29 @@ def fuse_into(m: Map, kf: KeyFrame, pids: np.ndarray, grid: FeatureGrid, window:
 
 def search_in_neighbors(m: Map, kf: KeyFrame, config: LocalMappingConfig) -> dict[str, int]:
     """Fuse the new keyframe's points with its neighbourhood's, both ways; refresh the
-    keyframe's points and connections. Returns counts (targets, merged, added)."""
-    targets = fuse_targets(m, kf, config)
+    keyframe's points and connections. Returns counts (targets, merged, added).
+
+    The map lock is held for one target keyframe at a time, so the tracker waits for at
+    most one target's fusion (threaded mode)."""
+    with m.lock:
+        targets = fuse_targets(m, kf, config)
     merged = added = 0
     for k in targets:
-        t = m.keyframe(k)
-        if t.bad:
-            continue
+        with m.lock:
+            t = m.keyframe(k)
+            if t.bad:
+                continue
+            _, own = kf.observed_points()
+            a, b = fuse_into(m, t, own, FeatureGrid(t.keypoints, t.camera), config.fuse_window)
+        merged, added = merged + a, added + b
+    with m.lock:
+        if targets:
+            arrays = [m.keyframe(k).point_ids for k in targets if not m.keyframe(k).bad]
+            cand = np.concatenate(arrays) if arrays else np.zeros(0, np.int64)
+            cand = np.unique(cand[cand >= 0])
+            a, b = fuse_into(m, kf, cand, FeatureGrid(kf.keypoints, kf.camera), config.fuse_window)
+            merged, added = merged + a, added + b
         _, own = kf.observed_points()
-        a, b = fuse_into(m, t, own, FeatureGrid(t.keypoints, t.camera), config.fuse_window)
-        merged, added = merged + a, added + b
-    if targets:
-        arrays = [m.keyframe(k).point_ids for k in targets if not m.keyframe(k).bad]
-        cand = np.concatenate(arrays) if arrays else np.zeros(0, np.int64)
-        cand = np.unique(cand[cand >= 0])
-        a, b = fuse_into(m, kf, cand, FeatureGrid(kf.keypoints, kf.camera), config.fuse_window)
-        merged, added = merged + a, added + b
-    _, own = kf.observed_points()
-    m.update_points(own)
-    m.update_connections(kf.id)
+        m.update_points(own)
+        m.update_connections(kf.id)
     return {"targets": len(targets), "merged": merged, "added": added}

@@ -89,10 +89,11 @@ class LocalMapper:
             self._insert(kf)
         with self._timed("cull_points"), m.lock:
             self.recent, n_cull = cull_recent_points(m, self.recent, kf.id, cfg)
-        with self._timed("triangulate"), m.lock:
+        # These two take the map lock per neighbour keyframe.
+        with self._timed("triangulate"):
             new = create_new_points(m, kf, cfg)
             self.recent = np.concatenate([self.recent, new])
-        with self._timed("fuse"), m.lock:
+        with self._timed("fuse"):
             fused = search_in_neighbors(m, kf, cfg)
         ba_ms = ba_cpu_ms = 0.0
         if cfg.local_ba and m.n_keyframes() > 2 and not kf.bad:

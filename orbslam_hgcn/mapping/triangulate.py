@@ -109,17 +109,21 @@ def triangulate_with_neighbour(
 
 def create_new_points(m: Map, kf: KeyFrame, config: LocalMappingConfig) -> np.ndarray:
     """Triangulate ``kf`` against its best covisible keyframes and add the points to the
-    map (both observations, descriptor, viewing range). Returns (P,) new point ids."""
-    neighbours = m.covisible_keyframes(kf.id, config.triangulation_neighbours)
+    map (both observations, descriptor, viewing range). Returns (P,) new point ids.
+
+    The map lock is held for one neighbour at a time, so the tracker waits for at most
+    one neighbour's matching (threaded mode)."""
+    with m.lock:
+        neighbours = m.covisible_keyframes(kf.id, config.triangulation_neighbours)
     new_ids: list[np.ndarray] = []
     for k2 in neighbours:
-        kf2 = m.keyframe(int(k2))
-        if kf2.bad:
-            continue
-        X, s1, s2 = triangulate_with_neighbour(m, kf, kf2, config)
-        if len(X) == 0:
-            continue
         with m.lock:
+            kf2 = m.keyframe(int(k2))
+            if kf2.bad or kf.bad:
+                continue
+            X, s1, s2 = triangulate_with_neighbour(m, kf, kf2, config)
+            if len(X) == 0:
+                continue
             # Slots may have been taken by the points of an earlier neighbour.
             free = (kf.point_ids[s1] < 0) & (kf2.point_ids[s2] < 0)
             X, s1, s2 = X[free], s1[free], s2[free]
