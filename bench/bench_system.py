@@ -13,7 +13,9 @@ thread: gtsam keeps the GIL, so tracking stalls while it iterates).
 Each run is made in its own process (so peak memory is its own). Images are decoded by a
 reader thread a few frames ahead (``--preload``: all of them before the clock starts);
 decode time is printed apart. Printed per run: frames/s over the run, per-frame tracking
-latency (extraction + tracking + handing keyframes over, on the tracking thread): median,
+latency (from the start of the frame's ORB extraction to the end of its tracking and of
+handing keyframes over; in threaded mode the extraction runs on the prefetch thread while
+the previous frame is tracked, so the latency also holds the wait for that frame): median,
 p95, max, over all frames and over the frames during which a bundle adjustment or pose
 graph was being solved; map-lock waits; local mapping per keyframe; ATE after Sim(3)
 alignment; peak RSS of the process and of its children (the BA process). ``--profile``

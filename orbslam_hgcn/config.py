@@ -519,6 +519,12 @@ class LoopClosingConfig:
     # SearchByBoW between the keyframe and a candidate: ratio, and matches needed.
     bow_ratio: float = 0.75
     min_bow_matches: int = 20
+    # Candidates share more than 0.8 x the most shared words: as a raw count, as ORB-SLAM
+    # does (False), or counted per word of each keyframe (True; see
+    # KeyframeDatabase._detect). Relocalisation uses True; for loops the raw count is kept:
+    # on the fr3 replay with the shipped HGCN vocabulary, True found no loop at the revisit
+    # (every candidate failed the BoW-match stage) where False closes it.
+    common_words_per_word: bool = False
     # Sim3Solver RANSAC (0.99, 20 inliers, 300 iterations); fix_scale only for stereo/RGB-D.
     sim3_probability: float = 0.99
     sim3_min_inliers: int = 20
@@ -564,6 +570,9 @@ class RelocalizationConfig:
 
     bow_ratio: float = 0.75  # SearchByBoW ratio between a candidate keyframe and the frame
     min_bow_matches: int = 15  # candidates with fewer matches are skipped
+    # Database candidates share more than 0.8 x the most shared words, counted per word of
+    # each keyframe (True) or as ORB-SLAM's raw count (False; see KeyframeDatabase._detect).
+    common_words_per_word: bool = True
     # PnPsolver::SetRansacParameters(0.99, 10, 300, 4, 0.5, 5.991).
     pnp_probability: float = 0.99
     pnp_min_inliers: int = 10

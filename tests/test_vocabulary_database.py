@@ -74,3 +74,17 @@ def test_relocalisation_candidates_and_erase(db):
     db.add(2, _bow(range(40, 50)))  # re-adding replaces the old vector
     assert db.postings(0).keys() == {1, 3, 5}
     assert db.detect_relocalization_candidates(_bow([99])) == []
+
+
+def test_per_word_filter_is_not_won_by_the_largest_keyframe():
+    # G holds twice the words of the others and shares 12 of them with the query only
+    # by chance (words 100..111); H sees the query's place (8 of its 10 words shared).
+    # The raw count keeps G alone (8 < 0.8 x 12); per word H shares 0.8, G 0.6.
+    query = _bow([*range(8), *range(100, 112)])
+    d = KeyframeDatabase()
+    d.add(7, _bow([*range(100, 112), *range(200, 208)]))  # G: 20 words
+    d.add(8, _bow([*range(8), 300, 301]))  # H: 10 words
+    assert [c.kf_id for c in d.detect_relocalization_candidates(query)] == [7]
+    assert [c.kf_id for c in d.detect_relocalization_candidates(query, per_word=True)] == [8]
+    loop = d.detect_loop_candidates(query, connected=[], min_score=0.0, per_word=True)
+    assert [(c.kf_id, c.common_words) for c in loop] == [(8, 8)]

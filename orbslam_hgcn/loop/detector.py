@@ -136,8 +136,9 @@ class LoopDetector:
             min_score, connected = self.min_covisible_score(kf)
             exclude = set(connected) | {kf.id}
             found = self.database.detect_loop_candidates(
-                kf.bow, exclude, min_score, covisible=lambda k: m.covisible_keyframes(int(k), self.database.n_covisible)
-            )
+                kf.bow, exclude, min_score, covisible=lambda k: m.covisible_keyframes(int(k), self.database.n_covisible),
+                per_word=cfg.common_words_per_word,
+            )  # fmt: skip
             cands = [c.kf_id for c in found if not m.keyframe(c.kf_id).bad]
             if not cands:
                 self.filter.clear()

@@ -2,7 +2,8 @@
 Mur-Artal, Montiel & Tardos, T-RO 2015, Sec. V-C).
 
 1. the keyframe database returns the keyframes most similar to the frame's BoW vector
-   (:meth:`KeyframeDatabase.detect_relocalization_candidates`);
+   (:meth:`KeyframeDatabase.detect_relocalization_candidates`; by default its shared-word
+   filter counts words per word of each keyframe, ``common_words_per_word``);
 2. each candidate's map points are matched to the frame through the vocabulary
    (SearchByBoW, ratio 0.75, rotation check); candidates with fewer than 15 matches are
    dropped;
@@ -177,8 +178,9 @@ def relocalize(
         return fail
     with m.lock:
         found = database.detect_relocalization_candidates(
-            frame.bow, covisible=lambda k: m.covisible_keyframes(int(k), database.n_covisible)
-        )
+            frame.bow, covisible=lambda k: m.covisible_keyframes(int(k), database.n_covisible),
+            per_word=cfg.common_words_per_word,
+        )  # fmt: skip
         cands = [c.kf_id for c in found if not m.keyframe(c.kf_id).bad]
         tried, best = 0, 0
         for k in cands:

@@ -6,7 +6,9 @@ ORB-SLAM (Mur-Artal, Montiel & Tardos, T-RO 2015, sections VI-A and III-F, and i
 1. every keyframe sharing a word with the query (through the inverted index) is a
    candidate, except the query's connected keyframes (loop detection);
 2. only candidates sharing more than ``0.8 x`` the largest number of shared words are
-   scored (L1 score), and, for loops, only those scoring at least ``min_score`` are kept;
+   scored (L1 score), and, for loops, only those scoring at least ``min_score`` are kept
+   (optionally, ``per_word``, the shared words are counted as a fraction of each
+   keyframe's words: see :meth:`KeyframeDatabase._detect`);
 3. each kept candidate's score is accumulated over its group: itself and those of its
    best covisible keyframes that were scored in step 2; the group is represented by its
    best-scoring keyframe;
@@ -102,6 +104,10 @@ class KeyframeDatabase:
         """{kf_id: weight} of the keyframes holding ``word`` (a copy)."""
         return dict(self._index.get(int(word), {}))
 
+    def _sizes(self, ids: np.ndarray) -> np.ndarray:
+        """(M,) float64 number of words of each keyframe of ``ids``."""
+        return np.fromiter((len(self._bows[k].words) for k in ids.tolist()), np.float64, len(ids))
+
     # --- scoring --------------------------------------------------------------------------
     def shared(self, bow: BowVector, exclude: Collection[int] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Keyframes sharing a word with ``bow``.
@@ -145,29 +151,45 @@ class KeyframeDatabase:
         return list(zip(ids[order].tolist(), scores[order].tolist()))
 
     def detect_loop_candidates(
-        self, bow: BowVector, connected: Iterable[int], min_score: float, covisible: CovisibleFn | None = None
-    ) -> list[Candidate]:
+        self, bow: BowVector, connected: Iterable[int], min_score: float, covisible: CovisibleFn | None = None,
+        per_word: bool = False,
+    ) -> list[Candidate]:  # fmt: skip
         """ORB-SLAM's ``DetectLoopCandidates``.
 
         bow: the query keyframe's vector. connected: its connected keyframes (excluded;
         include the query's own id if it is in the database). min_score: lowest L1 score of
         a candidate (ORB-SLAM: the lowest score between the query and its covisible
         keyframes). covisible: kf_id -> best covisible kf ids (None: no groups).
+        per_word: step 2 compares the shared words divided by the keyframe's own number of
+        words, instead of the shared words (see :meth:`_detect`).
         """
-        return self._detect(bow, set(int(k) for k in connected), float(min_score), covisible)
+        return self._detect(bow, set(int(k) for k in connected), float(min_score), covisible, per_word)
 
-    def detect_relocalization_candidates(self, bow: BowVector, covisible: CovisibleFn | None = None) -> list[Candidate]:
-        """ORB-SLAM's ``DetectRelocalizationCandidates`` (no exclusion, no minimum score)."""
-        return self._detect(bow, set(), None, covisible)
+    def detect_relocalization_candidates(
+        self, bow: BowVector, covisible: CovisibleFn | None = None, per_word: bool = False
+    ) -> list[Candidate]:
+        """ORB-SLAM's ``DetectRelocalizationCandidates`` (no exclusion, no minimum score);
+        ``per_word`` as in :meth:`detect_loop_candidates`."""
+        return self._detect(bow, set(), None, covisible, per_word)
 
     def _detect(
-        self, bow: BowVector, exclude: set[int], min_score: float | None, covisible: CovisibleFn | None
-    ) -> list[Candidate]:
+        self, bow: BowVector, exclude: set[int], min_score: float | None, covisible: CovisibleFn | None,
+        per_word: bool = False,
+    ) -> list[Candidate]:  # fmt: skip
+        """Steps 2 to 4 of the module's query.
+
+        With ``per_word`` the step-2 filter is on the fraction of a keyframe's words that
+        the query shares. With a small vocabulary (thousands of words against a million in
+        ORB-SLAM's) most words of a 1000-feature query are shared by chance with any
+        keyframe, in proportion to the keyframe's size, so the raw count favours the
+        largest keyframes (the two initial ones, made with twice the features) over the
+        ones that see the same place; the fraction does not.
+        """
         ids, common, scores = self.shared(bow, exclude)
         if len(ids) == 0:
             return []
-        min_common = float(common.max()) * self.min_common_ratio
-        scored = common > min_common
+        share = common / self._sizes(ids) if per_word else common.astype(np.float64)
+        scored = share > float(share.max()) * self.min_common_ratio
         kept = scored if min_score is None else scored & (scores >= min_score)
         if not kept.any():
             return []
