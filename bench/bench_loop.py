@@ -21,7 +21,12 @@ Parts (``--parts``):
 * ``hgcn`` / ``orb``: full run with loop closing and that vocabulary: the loops closed
   (both ends' frames and the ground-truth distance and angle between them: a true loop
   joins views less than 0.5 m and 30 deg apart), keyframe and camera ATE RMSE after Sim(3)
-  alignment (target: keyframes <= 2 cm with HGCN), frames lost, loop timings;
+  alignment (target: keyframes <= 2 cm with HGCN), frames lost, loop timings, and how the
+  revisit keyframes (frames 2250-2549) are tied to the first visit (frames 0-299): how many
+  are covisible with first-visit keyframes and what share of their points the first visit
+  made. When the odometry drifts little, tracking finds the first visit's points through
+  the local map before any loop is detected; the revisit keyframes are then connected to
+  the old ones, which loop detection excludes, so no loop closure is needed or made;
 * ``noloop``: the same run with loop closing off (the HGCN vocabulary still indexes
   keyframes), for the ATE before/after comparison;
 * ``false``: ``fr3_repeated`` with both vocabularies: loops closed (target 0), how many
@@ -63,6 +68,8 @@ from orbslam_hgcn.vocabulary import load_vocabulary
 REPO = Path(__file__).resolve().parents[1]
 FR3_GT = REPO.parent / "shared" / "data" / "tum_fr3_long_office_household_sample" / "groundtruth.txt"
 SPLICE = (2310, 2340)  # frames replaced by frames of another room in the relocalisation run
+FIRST_VISIT_END = 300  # frames 0-299 (0-10 s): the first visit of the place seen again at the revisit
+REVISIT = (2250, 2550)  # frames 2250-2549 (75-85 s): the revisit
 CIRCLE_GT = "circle_groundtruth.txt"
 SEQUENCES = {
     "fr3_replay": SynthOptions(trajectory="replay", gt=str(FR3_GT)),
@@ -143,6 +150,27 @@ def describe_loop(gt: Trajectory, ev: dict) -> str:
     )
 
 
+def revisit_link(system: System) -> dict:
+    """How the revisit keyframes are tied to the first visit: the share of their map
+    points that were made by first-visit keyframes (keyframe ids grow with time, so every
+    id up to the last first-visit keyframe's was made then). Above zero, the revisit
+    tracks the first visit's points: either a loop closure fused them, or the odometry
+    drifted so little that tracking found them through the local map, and the revisit
+    keyframes are then covisible with the old ones (no loop is left to detect)."""
+    m = system.map
+    kfs = m.keyframes()
+    first = [kf.id for kf in kfs if kf.frame_id < FIRST_VISIT_END]
+    revisit = [kf for kf in kfs if REVISIT[0] <= kf.frame_id < REVISIT[1]]
+    if not first or not revisit:
+        return {"revisit_keyframes": len(revisit), "points": 0, "from_first_visit": 0}
+    last_first = max(first)
+    pids = np.concatenate([kf.point_ids[kf.point_ids >= 0] for kf in revisit])
+    old = sum(m.point(int(p)).first_kf <= last_first for p in pids)
+    covisible = sum(bool(set(m.covisible_keyframes(kf.id).tolist()) & set(first)) for kf in revisit)
+    return {"revisit_keyframes": len(revisit), "points": int(len(pids)), "from_first_visit": int(old),
+            "covisible_with_first_visit": int(covisible)}
+
+
 def run(seq: Sequence, vocab_path: str, loop: bool, max_frames: int | None, out: Path | None = None) -> dict:
     vocab = load_vocabulary(vocab_path)
     configs = Configs()
@@ -184,6 +212,7 @@ def run(seq: Sequence, vocab_path: str, loop: bool, max_frames: int | None, out:
         "reloc": stats.get("relocalization", {}),
         "resets": stats["map_resets"],
         "around_loops": around,
+        "revisit": revisit_link(system),
     }
 
 
@@ -209,6 +238,12 @@ def print_run(title: str, r: dict, gt: Trajectory) -> None:
         if "error" not in a["before"] and "error" not in a["after"]:
             print(f"  keyframe ATE at the loop of kf {a['kf']}: {100 * a['before']['rmse_m']:.2f} cm before the "
                   f"correction, {100 * a['after']['rmse_m']:.2f} cm after ({a['before']['pairs']} keyframes)")
+    v = r["revisit"]
+    if v["points"]:
+        print(f"  revisit (frames {REVISIT[0]}-{REVISIT[1] - 1}): {v['revisit_keyframes']} keyframes, "
+              f"{v['covisible_with_first_visit']} of them covisible with first-visit keyframes (frames "
+              f"0-{FIRST_VISIT_END - 1}); {v['from_first_visit']} of their {v['points']} map points "
+              f"({100 * v['from_first_visit'] / v['points']:.0f}%) were made in the first visit")
     if r["reloc"]:
         print(f"  relocalisation: {r['reloc']['attempts']} attempts, {r['reloc']['successes']} successes "
               f"{r['reloc']['history'][:5]}")
