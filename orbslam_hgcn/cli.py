@@ -252,6 +252,20 @@ def _run_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_sequence_arguments(p: argparse.ArgumentParser) -> None:
+    """The dataset path and --dataset kind (run, compare)."""
+    p.add_argument("path", help="dataset folder (or video file)")
+    p.add_argument("--dataset", choices=("tum", "euroc", "kitti", "folder", "video"), default=None,
+                   help="dataset kind (default: detected from the folder)")
+
+
+def _add_sequential_argument(p: argparse.ArgumentParser) -> None:
+    """--sequential (run, compare, demo)."""
+    p.add_argument("--sequential", action="store_true",
+                   help="run local mapping and loop closing in order after each frame (reproducible), "
+                   "instead of in worker threads")
+
+
 @subcommand
 def _add_run(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -262,9 +276,7 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
         "KeyFrameTrajectory.txt, CameraTrajectory.txt (TUM format) and stats.json; prints the "
         "ATE after Sim(3) alignment when the dataset has ground truth.",
     )
-    p.add_argument("path", help="dataset folder (or video file)")
-    p.add_argument("--dataset", choices=("tum", "euroc", "kitti", "folder", "video"), default=None,
-                   help="dataset kind (default: detected from the folder)")
+    _add_sequence_arguments(p)
     p.add_argument("--config", default=None,
                    help="YAML with the camera and/or stage sections (orb, initializer, tracking, "
                    "local_mapping, backend, map, system); a shipped camera name such as tum_fr3")
@@ -283,9 +295,7 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
                    help="start from a saved map (relocalise on it first); the vocabulary defaults to the map's")
     p.add_argument("--localization", action="store_true",
                    help="with --load-map: track against the map without changing it (no new keyframes)")
-    p.add_argument("--sequential", action="store_true",
-                   help="run local mapping and loop closing in order after each frame (reproducible), "
-                   "instead of in worker threads")
+    _add_sequential_argument(p)
     p.set_defaults(func=_run_run)
 
 
@@ -379,17 +389,14 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
         "summarise keyframe ATE after Sim(3) alignment (median/min/max), loops closed, frames lost "
         "and fps per vocabulary; write compare.md, compare.json and compare_ate.png into --out.",
     )
-    p.add_argument("path", help="dataset folder (or video file)")
-    p.add_argument("--dataset", choices=("tum", "euroc", "kitti", "folder", "video"), default=None,
-                   help="dataset kind (default: detected from the folder)")
+    _add_sequence_arguments(p)
     p.add_argument("--config", default=None, help="camera/stage YAML or a shipped camera name, as for run")
     p.add_argument("--runs", type=int, default=5, help="runs per vocabulary (default 5)")
     p.add_argument("--vocabs", nargs="+", default=["orb", "hgcn"], metavar="VOCAB",
                    help="vocabularies to compare: orb, hgcn or files (default: orb hgcn)")
     p.add_argument("--out", required=True, help="output folder (one sub-folder per run)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames per run")
-    p.add_argument("--sequential", action="store_true",
-                   help="run local mapping and loop closing in order after each frame (identical runs)")
+    _add_sequential_argument(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_run_compare)
 
@@ -427,8 +434,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
                    help="cache folder of rendered sequences (default $ORBSLAM_HGCN_CACHE or ~/.cache/orbslam_hgcn)")
     add_rerun_argument(p)
     p.add_argument("--no-rerun", action="store_true", help="record no rerun visualisation")
-    p.add_argument("--sequential", action="store_true",
-                   help="run local mapping and loop closing in order after each frame instead of in threads")
+    _add_sequential_argument(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_run_demo)
 

@@ -11,7 +11,8 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import make_T
 from orbslam_hgcn.map import Frame, Map, MapSnapshot, check_invariants, essential_graph, predict_scale, snapshot
 from orbslam_hgcn.map.graph import COVISIBILITY, LOOP, TREE
-from orbslam_hgcn.map.mappoint import distinctive_descriptor, distinctive_descriptors, hamming_matrix, normal_and_depth
+from orbslam_hgcn.features.hamming import hamming_matrix
+from orbslam_hgcn.map.mappoint import distinctive_descriptor, distinctive_descriptors, normal_and_depth
 from orbslam_hgcn.map.window import apply_window, local_window
 
 CAM = PinholeCamera(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
@@ -239,7 +240,7 @@ def test_point_descriptor_viewing_range_and_scale_prediction():
     rng = np.random.default_rng(10)
     desc = rng.integers(0, 256, (6, 32)).astype(np.uint8)
     ref = np.unpackbits(desc[:, None, :] ^ desc[None, :, :], axis=2).sum(axis=2)
-    np.testing.assert_array_equal(hamming_matrix(desc), ref)
+    np.testing.assert_array_equal(hamming_matrix(desc, desc), ref)
     base = rng.integers(0, 256, 32).astype(np.uint8)
     bits = np.unpackbits(base)
     noisy = []

@@ -13,17 +13,9 @@ import logging
 
 import numpy as np
 
+from orbslam_hgcn.features.hamming import hamming_matrix
+
 log = logging.getLogger(__name__)
-
-# Number of set bits of every byte value, for Hamming distances of packed descriptors.
-_POPCOUNT8 = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
-
-
-def hamming_matrix(desc: np.ndarray) -> np.ndarray:
-    """(n, n) int32 pairwise Hamming distances of (n, 32) uint8 descriptors."""
-    desc = np.asarray(desc, dtype=np.uint8)
-    x = desc[:, None, :] ^ desc[None, :, :]
-    return _POPCOUNT8[x].sum(axis=2, dtype=np.int32)
 
 
 def distinctive_descriptor(desc: np.ndarray) -> np.ndarray:
@@ -36,7 +28,7 @@ def distinctive_descriptor(desc: np.ndarray) -> np.ndarray:
     desc = np.asarray(desc, dtype=np.uint8)
     if len(desc) <= 2:
         return desc[0].copy()
-    D = np.sort(hamming_matrix(desc), axis=1)
+    D = np.sort(hamming_matrix(desc, desc), axis=1)
     median = D[:, (len(desc) - 1) // 2]
     return desc[int(np.argmin(median))].copy()
 

@@ -40,32 +40,11 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.sim3 import horn_similarity
 from orbslam_hgcn.map.graph import snapshot as map_snapshot
 from orbslam_hgcn.viz.records import FrameLog, MapSnapshot
-from orbslam_hgcn.viz.rerun_logger import RerunLogger
+from orbslam_hgcn.viz.rerun_logger import RerunLogger, Rows
 
 log = logging.getLogger(__name__)
 
 MIN_ALIGN_PAIRS = 3  # as the ATE evaluation: fewer pairs cannot fix a similarity
-
-
-class _Rows:
-    """A growable (N, C) float64 buffer (amortised O(1) appends, no per-frame copies)."""
-
-    def __init__(self, columns: int) -> None:
-        self._buf = np.zeros((256, columns))
-        self.n = 0
-
-    def append(self, row: np.ndarray) -> None:
-        if self.n == len(self._buf):
-            self._buf = np.vstack([self._buf, np.zeros_like(self._buf)])
-        self._buf[self.n] = row
-        self.n += 1
-
-    def clear(self) -> None:
-        self.n = 0
-
-    @property
-    def array(self) -> np.ndarray:
-        return self._buf[: self.n]
 
 
 def sim3_ate(est_w: np.ndarray, gt_w: np.ndarray) -> tuple[float, np.ndarray] | None:
@@ -138,9 +117,9 @@ class LiveViz:
         self._n_loops = 0
         self._last_index: int | None = None
         self._last_call: float | None = None
-        self._est = _Rows(3)  # tracked camera centres with ground truth, map frame
-        self._gt = _Rows(3)  # their ground-truth centres, metres
-        self._gt_all = _Rows(3)  # every ground-truth centre seen, in frame order
+        self._est = Rows(3, np.float64)  # tracked camera centres with ground truth, map frame
+        self._gt = Rows(3, np.float64)  # their ground-truth centres, metres
+        self._gt_all = Rows(3, np.float64)  # every ground-truth centre seen, in frame order
         self._gt_by_stamp: dict[float, np.ndarray] = {}
         self._S_gt_est: np.ndarray | None = None
         self.frames_logged = 0

@@ -73,23 +73,28 @@ def _strips(vertices: np.ndarray) -> pa.Array:
     return pa.ListArray.from_arrays(offsets, points, type=_strip_type())
 
 
-class _Positions:
-    """A growable (N, 3) float32 buffer of camera centres."""
+class Rows:
+    """A growable (N, columns) buffer (amortised O(1) appends, no per-frame copies)."""
 
-    def __init__(self) -> None:
-        self._buf = np.zeros((256, 3), dtype=np.float32)
+    def __init__(self, columns: int = 3, dtype: type = np.float32) -> None:
+        self._buf = np.zeros((256, columns), dtype=dtype)
         self.n = 0
 
-    def append(self, p: np.ndarray) -> None:
+    def append(self, row: np.ndarray) -> None:
         if self.n == len(self._buf):
             self._buf = np.vstack([self._buf, np.zeros_like(self._buf)])
-        self._buf[self.n] = p
+        self._buf[self.n] = row
         self.n += 1
 
-    def replace(self, positions: np.ndarray) -> None:
-        positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
-        self._buf = np.vstack([positions, np.zeros((max(256, len(positions)), 3), np.float32)])
-        self.n = len(positions)
+    def replace(self, rows: np.ndarray) -> None:
+        """Hold ``rows`` (N, columns) instead of what was appended."""
+        cols = self._buf.shape[1]
+        rows = np.asarray(rows, dtype=self._buf.dtype).reshape(-1, cols)
+        self._buf = np.vstack([rows, np.zeros((max(256, len(rows)), cols), self._buf.dtype)])
+        self.n = len(rows)
+
+    def clear(self) -> None:
+        self.n = 0
 
     @property
     def array(self) -> np.ndarray:
@@ -143,7 +148,7 @@ class RerunLogger:
         self._loop_edges = np.zeros((0, 2), dtype=np.int64)
         self._kf_ids = np.zeros(0, dtype=np.int64)
         self._kf_centres = np.zeros((0, 3), dtype=np.float32)
-        self._trajectory = _Positions()
+        self._trajectory = Rows(3, np.float32)  # camera centres
         self._closed = False
         self._log_static()
 
