@@ -372,12 +372,11 @@ class System:
             log.warning("interrupted after %d frames; saving what exists", done)
         except BaseException:
             bar.close()
-            if prefetch is not None:
-                prefetch.close()
             self._close_quietly()
             raise
-        if prefetch is not None:
-            prefetch.close()
+        finally:
+            if prefetch is not None:
+                prefetch.close()
         bar.close()
         try:
             self.close(drain=True)
