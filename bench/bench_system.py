@@ -55,11 +55,14 @@ MODES = ("sequential", "threaded", "threaded-inproc")
 class ReaderSequence:
     """A sequence whose images a reader thread decodes ahead into a bounded queue.
 
-    Frames must be read in order (as System.run does). decode_ms: (N,) per image.
+    Frames must be read in order (as System.run does). decode_ms: (N,) per image. rate > 0:
+    frame i is handed out no earlier than i / rate seconds after frame 0, as a camera
+    delivers them.
     """
 
-    def __init__(self, base, n: int, ahead: int = 16, preload: bool = False) -> None:
-        self.base, self.n = base, n
+    def __init__(self, base, n: int, ahead: int = 16, preload: bool = False, rate: float = 0.0) -> None:
+        self.base, self.n, self.rate = base, n, rate
+        self._t0: float | None = None
         self.name, self.camera, self.ground_truth = base.name, base.camera, base.ground_truth
         self.color = getattr(base, "color", False)
         self.decode_ms: list[float] = []
@@ -85,11 +88,24 @@ class ReaderSequence:
         rec = self._q.get()
         self.waited_ms += 1000.0 * (time.perf_counter() - t)
         assert rec.index == i, "frames are read in order"
+        if self.rate > 0:  # a camera: frame i exists from t0 + i / rate on
+            if self._t0 is None:
+                self._t0 = time.perf_counter()
+            time.sleep(max(0.0, self._t0 + i / self.rate - time.perf_counter()))
         return rec
 
     @property
     def timestamps(self) -> np.ndarray:
         return self.base.timestamps[: self.n]
+
+
+def _from_arrival(seq: ReaderSequence, system) -> np.ndarray:
+    """(N,) ms from the time each frame was due from the camera (frame i: i / rate after
+    frame 0) to the end of its tracking: the frame's latency plus how late its extraction
+    started (when the system falls behind the camera)."""
+    started = np.asarray(system.frame_started) - seq._t0
+    due = np.arange(len(started)) / seq.rate
+    return np.maximum(started - due, 0.0) * 1000.0 + np.asarray(system.timings["frame"])
 
 
 def _summary(v) -> dict:
@@ -105,7 +121,10 @@ def _children_cpu_s() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def run_one(path: str, mode: str, max_frames: int | None, loop: bool, preload: bool, profile: bool, top: int) -> dict:
+def run_one(
+    path: str, mode: str, max_frames: int | None, loop: bool, preload: bool, profile: bool, top: int,
+    rate: float = 0.0, config: str | None = None,
+) -> dict:  # fmt: skip
     """One run in this process; returns its figures."""
     from orbslam_hgcn.datasets import open_sequence
     from orbslam_hgcn.pipeline.run import open_vocabulary, trajectory_ate
@@ -113,7 +132,7 @@ def run_one(path: str, mode: str, max_frames: int | None, loop: bool, preload: b
 
     base = open_sequence("tum", path)
     n = len(base) if max_frames is None else min(len(base), max_frames)
-    configs = Configs()
+    configs = Configs.from_yaml(config)
     configs = dataclasses.replace(
         configs,
         threads=dataclasses.replace(
@@ -123,7 +142,7 @@ def run_one(path: str, mode: str, max_frames: int | None, loop: bool, preload: b
     )
     vocabulary = open_vocabulary(None, loop)
     system = System(base.camera, configs, vocabulary=vocabulary)
-    seq = ReaderSequence(base, n, preload=preload)
+    seq = ReaderSequence(base, n, preload=preload, rate=rate)
     load0 = os.getloadavg()[0]
     prof = cProfile.Profile() if profile else None
     children0 = _children_cpu_s()
@@ -137,6 +156,8 @@ def run_one(path: str, mode: str, max_frames: int | None, loop: bool, preload: b
     out = {
         "mode": mode,
         "sequence": base.name,
+        "rate": rate,
+        "preload": preload,
         "frames": summary.frames,
         "wall_s": wall,
         "cpu_s": cpu,
@@ -146,6 +167,10 @@ def run_one(path: str, mode: str, max_frames: int | None, loop: bool, preload: b
         "decode_ms": _summary(seq.decode_ms),
         "reader_wait_ms_total": seq.waited_ms,
         "latency_all": _summary(frame),
+        # Only when every frame was timed (frames skipped while lost get no latency).
+        "latency_from_arrival": (
+            _summary(_from_arrival(seq, system)) if rate > 0 and len(system.frame_started) == summary.frames else None
+        ),
         "latency_optimising": _summary(frame[opt]),
         "latency_not_optimising": _summary(frame[~opt]),
         "extraction": _summary(system.timings["extraction"]),
@@ -176,12 +201,16 @@ def _fmt(d: dict) -> str:
 
 
 def report(r: dict) -> None:
-    print(f"\n== {r['sequence']} / {r['mode']}: {r['frames']} frames in {r['wall_s']:.1f} s "
+    paced = f"frames handed out at {r['rate']:g}/s" if r.get("rate") else "frames as fast as taken"
+    images = "images decoded before the clock started" if r.get("preload") else "images decoded during the run"
+    print(f"\n== {r['sequence']} / {r['mode']} ({paced}; {images}): {r['frames']} frames in {r['wall_s']:.1f} s "
           f"-> {r['fps']:.2f} frames/s (CPU: this process {r['cpu_s']:.0f} s, BA process "
           f"{r.get('cpu_children_s', 0):.0f} s; load avg {r['load'][0]:.1f} -> {r['load'][1]:.1f})")
     print(f"PNG decode (reader thread) ms/frame:  {_fmt(r['decode_ms'])}; tracking waited on the reader "
           f"{r['reader_wait_ms_total'] / 1000:.1f} s in all")
     print(f"tracking latency ms/frame, all:        {_fmt(r['latency_all'])}")
+    if r.get("latency_from_arrival"):
+        print(f"  from the frame's due time:           {_fmt(r['latency_from_arrival'])}")
     print(f"  while a BA / pose graph was solved:  {_fmt(r['latency_optimising'])}")
     print(f"  otherwise:                           {_fmt(r['latency_not_optimising'])}")
     print(f"  extraction:                          {_fmt(r['extraction'])}")
@@ -225,13 +254,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--loop", action="store_true", help="with loop closing (HGCN vocabulary)")
     p.add_argument("--preload", action="store_true", help="decode every image before the clock starts")
     p.add_argument("--profile", action="store_true", help="cProfile the tracking thread")
+    p.add_argument("--rate", type=float, default=0.0, help="hand frames out at this many per second, as a camera")
+    p.add_argument("--config", default=None, help="YAML with stage sections (threads, local_mapping, ...)")
     p.add_argument("--top", type=int, default=25)
     p.add_argument("--json", default=None, help="also write the figures to this file")
     p.add_argument("--one", nargs=2, metavar=("PATH", "MODE"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if args.one:
-        r = run_one(args.one[0], args.one[1], args.max_frames, args.loop, args.preload, args.profile, args.top)
+        r = run_one(
+            args.one[0], args.one[1], args.max_frames, args.loop, args.preload, args.profile, args.top, args.rate,
+            args.config,
+        )  # fmt: skip
         print("RESULT " + json.dumps(r))
         return 0
     print(f"uptime: {subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()}; "
@@ -242,6 +276,8 @@ def main(argv: list[str] | None = None) -> int:
         for mode in args.modes:
             cmd = [sys.executable, __file__, "--one", str(path), mode, "--top", str(args.top)]
             cmd += ["--max-frames", str(args.max_frames)] if args.max_frames else []
+            cmd += ["--rate", str(args.rate)] if args.rate > 0 else []
+            cmd += ["--config", str(Path(args.config).resolve())] if args.config else []
             flags = (("--loop", args.loop), ("--preload", args.preload), ("--profile", args.profile))
             cmd += [f for f, on in flags if on]
             proc = subprocess.run(cmd, capture_output=True, text=True)

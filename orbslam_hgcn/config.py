@@ -245,6 +245,7 @@ class ORBConfig:
     cell_size: int = 30  # side in pixels of the detection cells of each level
     edge_threshold: int = 19  # no keypoint closer than this to a level's border
     patch_size: int = 31  # rBRIEF patch side; orientation patch radius is patch_size // 2
+    threads: int = 2  # threads over the pyramid levels (the keypoints do not depend on it)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -606,6 +607,17 @@ class ThreadsConfig:
     # Threaded only: solve local and global BA in child processes. gtsam keeps the GIL
     # while it iterates, so a BA solved in a thread of this process stalls tracking.
     process_solver: bool = True
-    # Threaded only: System.run reads the next image and extracts its ORB features on a
-    # thread of its own while the current frame is tracked (OpenCV releases the GIL).
+    # Niceness added to the BA processes: on a machine with few cores, extraction and
+    # tracking get the CPU first, and BA the time they leave (local BA's CPU budget is
+    # counted in CPU time, so it does not shrink).
+    solver_nice: int = 10
+    # Niceness added to the local mapping and loop closing threads (Linux): the extraction
+    # process and the tracking thread get the CPU before them.
+    worker_nice: int = 5
+    # Threaded only: System.run reads images ahead on a thread of its own and extracts the
+    # next frame's ORB features while the current frame is tracked.
     prefetch: bool = True
+    # Threaded with prefetch: extract in a child process. Extraction's Python parts (corner
+    # scores, quadtree, keypoint objects) hold the GIL; on a thread they contend with
+    # tracking and local mapping for it.
+    extraction_process: bool = True

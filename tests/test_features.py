@@ -168,6 +168,18 @@ def test_orb_on_tum_image_count_spread_octaves(tum_sample, extractor):
     assert cv < 0.6 * cv_cv2
 
 
+def test_level_threads_give_the_same_keypoints(tum_sample):
+    # The pyramid levels may be searched and described on several threads; the result must
+    # be that of one thread, element for element.
+    img = _tum_image(tum_sample)
+    cam = load_camera("tum_fr3")
+    one = ORBExtractor(ORBConfig(threads=1)).extract(img, cam)
+    three = ORBExtractor(ORBConfig(threads=3)).extract(img, cam)
+    assert len(one) > 900
+    for name in ("uv_raw", "uv", "octave", "angle", "response", "desc"):
+        np.testing.assert_array_equal(getattr(three, name), getattr(one, name))
+
+
 def test_orb_descriptors_equal_opencv_for_same_keypoints(tum_sample, extractor):
     img = _tum_image(tum_sample)
     kps = extractor.extract(img)

@@ -297,6 +297,8 @@ def test_update_points_matches_single_point_formulas():
     rng = np.random.default_rng(12)
     m, truth = _build(rng, n_kf=5, n_pts=200, span=(2, 5))
     pids = np.array(sorted(truth))
+    for pid in pids[::14]:  # a reference keyframe that is not the first observer
+        m._pts.ref_kf[pid] = list(truth[pid])[-1]
     m.update_points(pids)
     for pid in pids[::7]:
         obs = truth[pid]

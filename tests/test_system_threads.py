@@ -4,7 +4,10 @@ solver giving the in-process results."""
 
 import json
 import multiprocessing
+import os
 import threading
+
+import cv2
 
 import numpy as np
 import pytest
@@ -14,12 +17,14 @@ from orbslam_hgcn.backend.pose_graph import relative_sim3
 from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver, SolverError
 from orbslam_hgcn.backend.synthetic import drifted_loop, make_scene, perturb_pose
 from orbslam_hgcn.cli import main
-from orbslam_hgcn.config import BackendConfig
+from orbslam_hgcn.config import BackendConfig, ORBConfig, load_camera
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.datasets.base import Sequence
 from orbslam_hgcn.evaluation.ate import evaluate
+from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.map import check_invariants
 from orbslam_hgcn.map.window import apply_window, local_window
+from orbslam_hgcn.pipeline.extraction import ExtractionError, ExtractionProcess
 from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
 from orbslam_hgcn.pipeline.system import System
 from orbslam_hgcn.pipeline.worker import WorkerError
@@ -208,7 +213,7 @@ def test_process_solver_errors_surface():
         assert "in the child process" in str(info.value) and "Traceback" in str(info.value)
         # The process survives a failed request, and one that dies is reported.
         solver.ping()
-        solver._proc.kill()
+        solver.kill()
         with pytest.raises(SolverError, match="died|lost"):
             solver.local_ba(p, BackendConfig())
         # The next request starts a fresh process.
@@ -217,6 +222,39 @@ def test_process_solver_errors_surface():
     finally:
         solver.close()
     assert not solver.alive
+
+
+@pytest.mark.skipif(not hasattr(os, "nice"), reason="no process niceness here")
+def test_process_solver_runs_at_lower_priority():
+    with ProcessSolver("test-solver", nice=4) as remote:
+        remote.ping()
+        child = [p for p in multiprocessing.active_children() if p.name == "orbslam-test-solver"]
+        assert len(child) == 1
+        assert os.getpriority(os.PRIO_PROCESS, child[0].pid) == min(os.getpriority(os.PRIO_PROCESS, 0) + 4, 19)
+
+
+def test_extraction_process_gives_the_direct_keypoints(tum_sample):
+    img = cv2.imread(str(sorted((tum_sample / "rgb").glob("*.png"))[0]), cv2.IMREAD_GRAYSCALE)
+    cam = load_camera("tum_fr3")
+    configs = {"normal": ORBConfig(), "init": ORBConfig(n_features=2000)}
+    proc = ExtractionProcess(configs, cam)
+    try:
+        for name, cfg in configs.items():
+            kps, ms = proc.extract(name, img)
+            direct = ORBExtractor(cfg).extract(img, cam)
+            assert ms > 0 and len(kps) > 0.9 * cfg.n_features
+            for field in ("uv_raw", "uv", "octave", "angle", "desc"):
+                np.testing.assert_array_equal(getattr(kps, field), getattr(direct, field))
+        # A bad request comes back as an error with the child's traceback; the process
+        # goes on serving.
+        with pytest.raises(ExtractionError, match="expected an \\(H, W\\) uint8 image") as info:
+            proc.extract("normal", img.astype(np.float32))
+        assert "Traceback" in str(info.value)
+        assert len(proc.extract("normal", img)[0]) > 900
+        assert proc.alive
+    finally:
+        proc.close()
+    assert not proc.alive
 
 
 def test_tracking_first_lock_lets_the_priority_waiter_in_first():

@@ -1,5 +1,7 @@
 """The generic stage worker: order, draining, error propagation, clean shutdown."""
 
+import os
+import sys
 import threading
 
 import pytest
@@ -51,3 +53,17 @@ def test_stop_without_drain_discards_waiting_items():
     stopper.join(5)
     assert not stopper.is_alive()
     assert len(seen) < 10
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="threads have their own niceness on Linux")
+def test_worker_thread_runs_at_lower_priority():
+    def niceness() -> int:
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    base = niceness()
+    seen = []
+    w = Worker("nice", lambda _: seen.append(niceness()), nice=3).start()
+    w.submit(0)
+    w.stop()
+    assert seen == [min(base + 3, 19)]
+    assert niceness() == base  # the caller's thread keeps its priority

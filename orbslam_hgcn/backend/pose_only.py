@@ -19,6 +19,7 @@ same scheme through gtsam, kept as the reference the numpy version is checked ag
 from __future__ import annotations
 
 import logging
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -42,75 +43,99 @@ _I3 = np.eye(3)
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:
     """(4, 4) exponential of a twist (6,) = (omega, upsilon) (rotation first)."""
-    w, v = xi[:3], xi[3:]
-    th2 = float(w @ w)
-    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    W2 = W @ W
+    w0, w1, w2, v0, v1, v2 = (float(t) for t in xi)
+    th2 = w0 * w0 + w1 * w1 + w2 * w2
     if th2 < 1e-20:
         a, b, c = 1.0, 0.5, 1.0 / 6.0
     else:
-        th = np.sqrt(th2)
-        a, b, c = np.sin(th) / th, (1.0 - np.cos(th)) / th2, (th - np.sin(th)) / (th2 * th)
+        th = math.sqrt(th2)
+        a, b, c = math.sin(th) / th, (1.0 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
+    # W = [w]x, W2 = W @ W = w w^T - th2 I
+    W = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
+    W2 = np.array([
+        [-(w1 * w1 + w2 * w2), w0 * w1, w0 * w2],
+        [w0 * w1, -(w0 * w0 + w2 * w2), w1 * w2],
+        [w0 * w2, w1 * w2, -(w0 * w0 + w1 * w1)],
+    ])  # fmt: skip
     T = np.zeros((4, 4))
     T[:3, :3] = _I3 + a * W + b * W2
-    T[:3, 3] = (_I3 + b * W + c * W2) @ v
+    T[:3, 3] = (_I3 + b * W + c * W2) @ (v0, v1, v2)
     T[3, 3] = 1.0
     return T
 
 
-def _camera_points(T: np.ndarray, XT: np.ndarray) -> np.ndarray:
-    """(3, M) camera-frame coordinates of (3, M) world points; depths of exactly 0 are
-    nudged to 1e-12 (points behind the camera keep their meaningless projection error, as
-    in g2o; the outlier test after each round rejects them)."""
-    Xc = T[:3, :3] @ XT + T[:3, 3:4]
-    z = Xc[2]
-    if not np.all(z):
-        z[z == 0.0] = 1e-12
-    return Xc
+class _Problem:
+    """One round's correspondences, laid out for :func:`_levenberg_marquardt`: XT (3, M)
+    world points, obs (2M,) observed u then v, info2 (2M,) their information."""
 
+    def __init__(self, X: np.ndarray, uv: np.ndarray, info: np.ndarray, K: np.ndarray) -> None:
+        self.XT = np.ascontiguousarray(X.T)
+        self.obs = np.concatenate([uv[:, 0], uv[:, 1]])
+        self.info = info
+        self.info2 = np.concatenate([info, info])
+        self.fx, self.fy, self.cx, self.cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+        self.M = len(info)
 
-def _linearise(T: np.ndarray, XT: np.ndarray, obs: np.ndarray, fx: float, fy: float, cx: float, cy: float):
-    """Residual rows eu, ev (M,) and Jacobian rows Ju, Jv (6, M) of e = obs - project(exp(d) T X),
-    d = (omega, upsilon) a left perturbation of T; XT (3, M) world points, obs (2, M) pixels."""
-    x, y, z = _camera_points(T, XT)
-    iz = 1.0 / z
-    xz, yz = x * iz, y * iz
-    eu = obs[0] - (fx * xz + cx)
-    ev = obs[1] - (fy * yz + cy)
-    M = XT.shape[1]
-    Ju = np.empty((6, M))
-    Jv = np.empty((6, M))
-    fxz, fyz = fx * xz, fy * yz
-    Ju[0] = fxz * yz
-    Ju[1] = -fx - fxz * xz
-    Ju[2] = fx * yz
-    Ju[3] = -fx * iz
-    Ju[4] = 0.0
-    Ju[5] = fxz * iz
-    Jv[0] = fy + fyz * yz
-    Jv[1] = -fyz * xz
-    Jv[2] = -fy * xz
-    Jv[3] = 0.0
-    Jv[4] = -fy * iz
-    Jv[5] = fyz * iz
-    return eu, ev, Ju, Jv
+    def residuals(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(2M,) residuals e = obs - project(T X) (u rows, then v rows) and (3, M) the
+        normalised coordinates x/z, y/z and 1/z. Depths of exactly 0 are nudged to 1e-12
+        (points behind the camera keep their meaningless error, as in g2o; the outlier
+        test after each round rejects them)."""
+        Xc = T[:3, :3] @ self.XT + T[:3, 3:4]
+        z = Xc[2]
+        if not np.all(z):
+            z[z == 0.0] = 1e-12
+        np.divide(1.0, z, out=z)  # Xc rows: x, y, 1/z
+        Xc[:2] *= z
+        e = np.empty(2 * self.M)
+        M = self.M
+        np.multiply(Xc[0], -self.fx, out=e[:M])
+        np.multiply(Xc[1], -self.fy, out=e[M:])
+        e += self.obs
+        e[:M] -= self.cx
+        e[M:] -= self.cy
+        return e, Xc
 
+    def cost(self, e: np.ndarray, delta: float | None) -> float:
+        """Sum of Huber-robust (or plain, delta None) whitened squared errors.
 
-def _cost(T, XT, obs, info, fx, fy, cx, cy, delta) -> float:
-    """Sum of Huber-robust (or plain, delta None) whitened squared errors.
+        Huber rho(s) = s - max(sqrt(s) - delta, 0) ** 2 equals s inside and 2 delta sqrt(s) -
+        delta ** 2 outside, without a branch."""
+        M = self.M
+        e2 = e * e
+        chi2 = self.info * (e2[:M] + e2[M:])
+        total = float(chi2.sum())
+        if delta is not None:
+            d = np.sqrt(chi2) - delta
+            np.maximum(d, 0.0, out=d)
+            total -= float(d @ d)
+        return total
 
-    Huber rho(s) = s - max(sqrt(s) - delta, 0) ** 2 equals s inside and 2 delta sqrt(s) -
-    delta ** 2 outside, without a branch."""
-    x, y, z = _camera_points(T, XT)
-    du = obs[0] - (fx * x / z + cx)
-    dv = obs[1] - (fy * y / z + cy)
-    chi2 = info * (du * du + dv * dv)
-    total = float(chi2.sum())
-    if delta is not None:
-        d = np.sqrt(chi2) - delta
-        np.maximum(d, 0.0, out=d)
-        total -= float(d @ d)
-    return total
+    def jacobian(self, n: np.ndarray) -> np.ndarray:
+        """(6, 2M) Jacobian rows of e for u then v, with respect to a left perturbation
+        d = (omega, upsilon) of T; n (3, M) from :meth:`residuals`."""
+        xz, yz, iz = n
+        fx, fy, M = self.fx, self.fy, self.M
+        J = np.empty((6, 2 * M))
+        Ju, Jv = J[:, :M], J[:, M:]
+        fxz, fyz = fx * xz, fy * yz
+        np.multiply(fxz, yz, out=Ju[0])
+        np.multiply(fxz, xz, out=Ju[1])
+        Ju[1] += fx
+        Ju[1] *= -1.0
+        np.multiply(yz, fx, out=Ju[2])
+        np.multiply(iz, -fx, out=Ju[3])
+        Ju[4] = 0.0
+        np.multiply(fxz, iz, out=Ju[5])
+        np.multiply(fyz, yz, out=Jv[0])
+        Jv[0] += fy
+        np.multiply(fyz, xz, out=Jv[1])
+        Jv[1] *= -1.0
+        np.multiply(xz, -fy, out=Jv[2])
+        Jv[3] = 0.0
+        np.multiply(iz, -fy, out=Jv[4])
+        np.multiply(fyz, iz, out=Jv[5])
+        return J
 
 
 def _levenberg_marquardt(
@@ -118,23 +143,25 @@ def _levenberg_marquardt(
 ) -> np.ndarray:
     """g2o-style LM (Nielsen damping update, up to 10 tries per iteration) with IRLS Huber
     weights; stops early once a step changes the cost by less than 1e-10 relative."""
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    XT = np.ascontiguousarray(X.T)
-    obs = np.ascontiguousarray(uv.T)
+    p = _Problem(X, uv, info, K)
     T = T0.copy()
-    cost = _cost(T, XT, obs, info, fx, fy, cx, cy, delta)
+    e, n = p.residuals(T)
+    cost = p.cost(e, delta)
     lam, nu = None, 2.0
     eye6 = np.eye(6)
     for _ in range(iters):
-        eu, ev, Ju, Jv = _linearise(T, XT, obs, fx, fy, cx, cy)
+        J = p.jacobian(n)
         if delta is not None:
             # IRLS weight of the Huber kernel: 1 inside, delta / |e| outside.
-            w = info * (delta / np.maximum(np.sqrt(info * (eu * eu + ev * ev)), delta))
+            e2 = e * e
+            r = np.sqrt(p.info * (e2[: p.M] + e2[p.M :]))
+            w = p.info * (delta / np.maximum(r, delta))
+            w = np.concatenate([w, w])
         else:
-            w = info
-        Juw, Jvw = Ju * w, Jv * w
-        H = Juw @ Ju.T + Jvw @ Jv.T
-        g = Juw @ eu + Jvw @ ev
+            w = p.info2
+        Jw = J * w
+        H = Jw @ J.T
+        g = Jw @ e
         if lam is None:
             lam = 1e-5 * float(H.diagonal().max())
         accepted = False
@@ -144,9 +171,10 @@ def _levenberg_marquardt(
             if gain <= 1e-12 * max(cost, 1e-300):
                 break  # converged: no step can lower the cost measurably
             T_new = se3_exp(dx) @ T
-            new_cost = _cost(T_new, XT, obs, info, fx, fy, cx, cy, delta)
+            e_new, n_new = p.residuals(T_new)
+            new_cost = p.cost(e_new, delta)
             rho = (cost - new_cost) / (gain + 1e-3)
-            if rho > 0 and np.isfinite(new_cost):
+            if rho > 0 and math.isfinite(new_cost):
                 accepted = True
                 break
             lam *= nu
@@ -154,7 +182,7 @@ def _levenberg_marquardt(
         if not accepted:
             break
         decrease = cost - new_cost
-        T, cost = T_new, new_cost
+        T, cost, e, n = T_new, new_cost, e_new, n_new
         lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
         nu = 2.0
         if decrease <= 1e-10 * cost:

@@ -18,12 +18,17 @@ Choices of this implementation:
   arrays (see :mod:`orbslam_hgcn.features.distribute`);
 * descriptors come from ``cv2.ORB.compute`` on each level image (which blurs it with a
   7x7, sigma 2 Gaussian, as ORB-SLAM does) with the orientation computed here.
+* levels are searched, and then described, on ``ORBConfig.threads`` threads (OpenCV
+  releases the GIL); the keypoints are the same for any number of threads.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
+import operator
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -38,6 +43,7 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 log = logging.getLogger(__name__)
 
 _FAST_MARGIN = 3  # FAST needs a radius-3 circle: no corner within 3 px of its window border
+_RESPONSE = operator.attrgetter("response")
 
 
 def circular_patch_offsets(half_patch: int) -> tuple[np.ndarray, np.ndarray]:
@@ -106,8 +112,8 @@ class ORBExtractor:
     def __init__(self, config: ORBConfig | None = None) -> None:
         self.config = config or ORBConfig()
         c = self.config
-        if c.n_levels < 1 or c.scale_factor <= 1.0 or c.n_features < 1:
-            raise ValueError("ORBConfig needs n_levels >= 1, scale_factor > 1, n_features >= 1")
+        if c.n_levels < 1 or c.scale_factor <= 1.0 or c.n_features < 1 or c.threads < 1:
+            raise ValueError("ORBConfig needs n_levels >= 1, scale_factor > 1, n_features >= 1, threads >= 1")
         self.scale_factors = np.array(
             [float(np.float32(c.scale_factor**level)) for level in range(c.n_levels)], dtype=np.float64
         )
@@ -123,6 +129,8 @@ class ORBExtractor:
             patchSize=c.patch_size,
         )
         self._patch_weights = patch_moment_weights(c.patch_size // 2)
+        # Pyramid levels are searched and described on `threads` threads (1: in the caller).
+        self._pool = ThreadPoolExecutor(c.threads, thread_name_prefix="orb-level") if c.threads > 1 else None
 
     def maps(self, height: int, width: int) -> PyramidMaps:
         """The per-pixel cell and quadtree-key tables of a (height, width) image (cached)."""
@@ -130,38 +138,48 @@ class ORBExtractor:
         return pyramid_maps(width, height, c.scale_factor, c.n_levels, c.edge_threshold, float(c.cell_size))
 
     def _detect(self, levels: list[np.ndarray], maps: PyramidMaps) -> tuple[np.ndarray, ...]:
-        """FAST corners of every level inside ORB-SLAM's border, with its per-cell thresholds.
-
-        Each level is searched at the high threshold; cells left without a corner are
-        searched again at the low threshold on their own window (the cell plus FAST's 3 px
-        margin). Returns (x, y, level, score, cell, key), each (N,) over all levels.
-        """
-        lo = self.config.edge_threshold - _FAST_MARGIN
-        parts = []
-        for level, img in enumerate(levels):
-            h, w = img.shape
-            if w <= 2 * self.config.edge_threshold or h <= 2 * self.config.edge_threshold:
-                continue
-            # FAST skips 3 px at the window border, so corners lie edge_threshold inside.
-            found = [self._corners(self._fast_hi, img, lo, h - lo, lo, w - lo)]
-            cells = maps.cell_maps[level]
-            first, last = maps.level_cells[level], maps.level_cells[level + 1]
-            covered = np.zeros(last - first, dtype=bool)
-            covered[cells[found[0][1], found[0][0]] - first] = True
-            for cell in np.flatnonzero(~covered) + first:
-                x0, x1, y0, y1 = maps.cell_boxes[cell].tolist()
-                x, y, score = self._corners(
-                    self._fast_lo, img, max(y0 - _FAST_MARGIN, lo), min(y1 + _FAST_MARGIN, h - lo),
-                    max(x0 - _FAST_MARGIN, lo), min(x1 + _FAST_MARGIN, w - lo),
-                )  # fmt: skip
-                mine = cells[y, x] == cell
-                found.append((x[mine], y[mine], score[mine]))
-            x, y, score = (np.concatenate(col) for col in zip(*found))
-            parts.append((x, y, np.full(len(x), level, np.int64), score, cells[y, x], maps.key_maps[level][y, x]))
+        """FAST corners of every level inside ORB-SLAM's border, with its per-cell thresholds
+        (:meth:`_detect_level`, levels on the extractor's threads). Returns (x, y, level,
+        score, cell, key), each (N,) over all levels."""
+        parts = [p for p in self._map(functools.partial(self._detect_level, maps=maps), levels) if p is not None]
         if not parts:
             empty = np.zeros(0, np.int64)
             return empty, empty, empty, np.zeros(0, np.float32), empty, empty
         return tuple(np.concatenate(col) for col in zip(*parts))
+
+    def _detect_level(self, level: int, img: np.ndarray, maps: PyramidMaps) -> tuple[np.ndarray, ...] | None:
+        """The corners of one level (None when it is too small to hold any).
+
+        The level is searched at the high threshold; cells left without a corner are
+        searched again at the low threshold on their own window (the cell plus FAST's 3 px
+        margin)."""
+        lo = self.config.edge_threshold - _FAST_MARGIN
+        h, w = img.shape
+        if w <= 2 * self.config.edge_threshold or h <= 2 * self.config.edge_threshold:
+            return None
+        # FAST skips 3 px at the window border, so corners lie edge_threshold inside.
+        found = [self._corners(self._fast_hi, img, lo, h - lo, lo, w - lo)]
+        cells = maps.cell_maps[level]
+        first, last = maps.level_cells[level], maps.level_cells[level + 1]
+        covered = np.zeros(last - first, dtype=bool)
+        covered[cells[found[0][1], found[0][0]] - first] = True
+        for cell in np.flatnonzero(~covered) + first:
+            x0, x1, y0, y1 = maps.cell_boxes[cell].tolist()
+            x, y, score = self._corners(
+                self._fast_lo, img, max(y0 - _FAST_MARGIN, lo), min(y1 + _FAST_MARGIN, h - lo),
+                max(x0 - _FAST_MARGIN, lo), min(x1 + _FAST_MARGIN, w - lo),
+            )  # fmt: skip
+            mine = cells[y, x] == cell
+            found.append((x[mine], y[mine], score[mine]))
+        x, y, score = (np.concatenate(col) for col in zip(*found))
+        return x, y, np.full(len(x), level, np.int64), score, cells[y, x], maps.key_maps[level][y, x]
+
+    def _map(self, fn, levels: list[np.ndarray]) -> list:
+        """[fn(level, image) for each level], on the extractor's threads when it has them
+        (OpenCV releases the GIL; results come back in level order)."""
+        if self._pool is None:
+            return [fn(level, img) for level, img in enumerate(levels)]
+        return list(self._pool.map(fn, range(len(levels)), levels))
 
     @staticmethod
     def _corners(fast: cv2.FastFeatureDetector, img: np.ndarray, r0: int, r1: int, c0: int, c1: int):
@@ -170,8 +188,21 @@ class ORBExtractor:
         if not kps:
             return np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0, np.float32)
         pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.intp)
-        score = np.fromiter((k.response for k in kps), dtype=np.float32, count=len(kps))
+        score = np.fromiter(map(_RESPONSE, kps), dtype=np.float32, count=len(kps))
         return pts[:, 0] + c0, pts[:, 1] + r0, score
+
+    def _describe(self, img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Orientation (N,) float32 degrees and rBRIEF descriptors (N, 32) uint8 of the
+        keypoints (x, y) (N,) of one level image."""
+        angle = ic_angles(img, x, y, self._patch_weights)
+        size = float(self.config.patch_size)
+        kps = [
+            cv2.KeyPoint(float(u), float(v), size, float(t)) for u, v, t in zip(x.tolist(), y.tolist(), angle.tolist())
+        ]
+        out, d = self._orb.compute(img, kps)
+        if d is None or len(out) != len(x):
+            raise RuntimeError("cv2.ORB.compute dropped keypoints that lie inside the edge threshold")
+        return angle, d
 
     def extract(self, image: np.ndarray, camera: PinholeCamera | None = None) -> KeypointSet:
         """ORB keypoints and descriptors of one image.
@@ -191,20 +222,14 @@ class ORBExtractor:
         x, y, level, score = x[sel], y[sel], level[sel], score[sel]
         angle = np.zeros(len(sel), dtype=np.float32)
         desc = np.zeros((len(sel), 32), dtype=np.uint8)
-        bounds = np.searchsorted(level, np.arange(c.n_levels + 1))
-        for lvl in range(c.n_levels):
+        bounds = np.searchsorted(level, np.arange(c.n_levels + 1)).tolist()
+
+        def describe(lvl: int, img: np.ndarray) -> None:
             a, b = bounds[lvl], bounds[lvl + 1]
-            if a == b:
-                continue
-            angle[a:b] = ic_angles(levels[lvl], x[a:b], y[a:b], self._patch_weights)
-            kps = [
-                cv2.KeyPoint(float(u), float(v), float(c.patch_size), float(t))
-                for u, v, t in zip(x[a:b].tolist(), y[a:b].tolist(), angle[a:b].tolist())
-            ]
-            out, d = self._orb.compute(levels[lvl], kps)
-            if d is None or len(out) != b - a:
-                raise RuntimeError("cv2.ORB.compute dropped keypoints that lie inside the edge threshold")
-            desc[a:b] = d
+            if a < b:
+                angle[a:b], desc[a:b] = self._describe(img, x[a:b], y[a:b])
+
+        self._map(describe, levels)
         scale = self.scale_factors[level].astype(np.float32)
         uv_raw = np.stack([x, y], axis=1).astype(np.float32) * scale[:, None]
         uv = camera.undistort_points(uv_raw) if camera is not None else uv_raw.astype(np.float64)

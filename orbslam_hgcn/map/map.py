@@ -88,8 +88,7 @@ class Map:
             cur = int(kf._point_ids[idx])
             if cur >= 0:
                 raise ValueError(f"slot {idx} of keyframe {kf_id} already holds point {cur}")
-            for other in obs:
-                self._bump_shared(kf, self._kfs[other], +1)
+            self._bump_shared_many(kf, obs, +1)
             obs[kf_id] = int(idx)
             kf._point_ids[idx] = pid
             return True
@@ -121,10 +120,30 @@ class Map:
         idx = obs.pop(kf_id)
         kf = self._kfs[kf_id]
         kf._point_ids[idx] = -1
-        for other in obs:
-            self._bump_shared(kf, self._kfs[other], -1)
+        self._bump_shared_many(kf, obs, -1)
         if self._pts.ref_kf[pid] == kf_id:
             self._pts.ref_kf[pid] = next(iter(obs)) if obs else -1
+
+    def _bump_shared_many(self, kf: KeyFrame, others: dict[int, int], delta: int) -> None:
+        """:meth:`_bump_shared` between ``kf`` and each keyframe id in ``others`` (the
+        observation dict of a point: it runs for every observation added or removed)."""
+        if not others:
+            return
+        shared, kf_id = kf.shared, kf.id
+        for other in others:
+            o = self._kfs[other]
+            n = shared.get(other, 0) + delta
+            if n > 0:
+                shared[other] = n
+            else:
+                shared.pop(other, None)
+            n = o.shared.get(kf_id, 0) + delta
+            if n > 0:
+                o.shared[kf_id] = n
+            else:
+                o.shared.pop(kf_id, None)
+            o._invalidate_covisibility()
+        kf._invalidate_covisibility()
 
     @staticmethod
     def _bump_shared(a: KeyFrame, b: KeyFrame, delta: int) -> None:
@@ -144,10 +163,11 @@ class Map:
             for kf_id in list(self._pts.obs[pid]):
                 self._unlink(kf_id, pid)
 
-    def replace_point(self, old: int, new: int) -> None:
+    def replace_point(self, old: int, new: int, refresh: bool = True) -> None:
         """Fuse ``old`` into ``new``: move old's observations to new (dropping those in
         keyframes that already see new), add its counters, flag old bad and replaced by new
-        (ORB-SLAM MapPoint::Replace); new's descriptor and viewing range are recomputed."""
+        (ORB-SLAM MapPoint::Replace); new's descriptor and viewing range are recomputed
+        (``refresh``; a caller merging many points may refresh the survivors at once)."""
         with self.lock:
             if old == new:
                 return
@@ -163,7 +183,8 @@ class Map:
             s.visible[new] += s.visible[old]
             s.bad[old] = True
             s.replaced_by[old] = new
-            self.update_points(np.array([new]))
+            if refresh:
+                self.update_points(np.array([new]))
 
     def set_point_positions(self, pids: np.ndarray, positions: np.ndarray) -> None:
         """Write (M, 3) positions of points ``pids``."""

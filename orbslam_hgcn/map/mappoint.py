@@ -9,6 +9,7 @@ are kept per point as ``{kf_id: feature index}`` in insertion order.
 
 from __future__ import annotations
 
+import itertools
 import logging
 
 import numpy as np
@@ -104,37 +105,55 @@ def refresh_points(store: PointStore, kfs: dict, pids: np.ndarray, descriptors: 
     """Recompute normal, distance range and (with ``descriptors``) representative descriptor
     of the good points ``pids`` of ``store`` from their observations in ``kfs`` ({id:
     KeyFrame}); the vectorised form of :func:`normal_and_depth` and
-    :func:`distinctive_descriptor` (the Map calls this under its lock)."""
+    :func:`distinctive_descriptor` (the Map calls this under its lock).
+
+    The observations of all points are flattened point after point, then gathered one
+    observing keyframe at a time (centre, level scale, descriptor)."""
     s = store
     ids = np.asarray(pids, dtype=np.int64).reshape(-1)
     ids = ids[~s.bad[ids]]
-    ids = ids[[bool(s.obs[p]) for p in ids]] if len(ids) else ids
+    obs = [s.obs[p] for p in ids.tolist()]
+    sizes = np.fromiter(map(len, obs), dtype=np.int64, count=len(obs))
+    if not sizes.all():
+        keep = sizes > 0
+        ids, sizes = ids[keep], sizes[keep]
+        obs = [o for o in obs if o]
     if len(ids) == 0:
         return
-    rows, kf_of, feat_of = [], [], []
-    for r, pid in enumerate(ids):
-        obs = s.obs[pid]
-        rows.extend([r] * len(obs))
-        kf_of.extend(obs.keys())
-        feat_of.extend(obs.values())
-    rows_a = np.array(rows)
-    centers = {k: kfs[k].T_wc[:3, 3] for k in set(kf_of)}
-    dirs = s.position[ids][rows_a] - np.array([centers[k] for k in kf_of])
+    total = int(sizes.sum())
+    kf_of = np.fromiter(itertools.chain.from_iterable(obs), dtype=np.int64, count=total)
+    feat_of = np.fromiter(itertools.chain.from_iterable(o.values() for o in obs), dtype=np.int64, count=total)
+    first_row = np.cumsum(sizes) - sizes  # first observation of each point
+    rows = np.repeat(np.arange(len(ids)), sizes)
+    centers = np.empty((total, 3))
+    level_scale = np.empty(total)
+    top_scale = np.empty(total)
+    desc = np.empty((total, 32), dtype=np.uint8)
+    order = np.argsort(kf_of, kind="stable")
+    kf_sorted = kf_of[order]
+    bounds = np.flatnonzero(np.concatenate([[True], kf_sorted[1:] != kf_sorted[:-1], [True]]))
+    for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
+        kf = kfs[int(kf_sorted[a])]
+        sel, kp = order[a:b], kf.keypoints
+        f = feat_of[sel]
+        centers[sel] = kf.T_wc[:3, 3]
+        level_scale[sel] = kp.scale_factors[kp.octave[f]]
+        top_scale[sel] = kp.scale_factors[-1]
+        if descriptors:
+            desc[sel] = kp.desc[f]
+    position = s.position[ids]
+    dirs = position[rows] - centers
     dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
-    normal = np.zeros((len(ids), 3))
-    np.add.at(normal, rows_a, dirs)
+    normal = np.add.reduceat(dirs, first_row, axis=0)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-    refs = [kfs[int(k)] for k in s.ref_kf[ids]]
-    ref_c = np.array([kf.T_wc[:3, 3] for kf in refs])
-    level_scale = np.array(
-        [kf.keypoints.scale_factors[kf.keypoints.octave[s.obs[p][kf.id]]] for p, kf in zip(ids, refs)]
-    )
-    top_scale = np.array([kf.keypoints.scale_factors[-1] for kf in refs])
-    dmax = np.linalg.norm(s.position[ids] - ref_c, axis=1) * level_scale
-    s.normal[ids], s.max_dist[ids], s.min_dist[ids] = normal, dmax, dmax / top_scale
+    # The observation in the reference keyframe gives the distance range.
+    ref = first_row.copy()
+    is_ref = np.flatnonzero(kf_of == s.ref_kf[ids][rows])
+    ref[rows[is_ref]] = is_ref
+    dmax = np.linalg.norm(position - centers[ref], axis=1) * level_scale[ref]
+    s.normal[ids], s.max_dist[ids], s.min_dist[ids] = normal, dmax, dmax / top_scale[ref]
     if descriptors:
-        all_desc = np.stack([kfs[k].keypoints.desc[f] for k, f in zip(kf_of, feat_of)])
-        s.desc[ids] = distinctive_descriptors(all_desc, np.bincount(rows_a, minlength=len(ids)))
+        s.desc[ids] = distinctive_descriptors(desc, sizes)
 
 
 class PointStore:

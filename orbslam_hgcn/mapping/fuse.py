@@ -56,6 +56,7 @@ def fuse_into(m: Map, kf: KeyFrame, pids: np.ndarray, grid: FeatureGrid, window:
     )
     sel = np.flatnonzero(match >= 0)
     merged = added = 0
+    survivors: list[int] = []  # refreshed once at the end (the matches are already made)
     with m.lock:
         for pid, idx in zip(pids[sel].tolist(), match[sel].tolist()):
             if kf.bad or m.point(pid).bad:
@@ -68,13 +69,17 @@ def fuse_into(m: Map, kf: KeyFrame, pids: np.ndarray, grid: FeatureGrid, window:
                 if other == pid or m.point(other).bad:
                     continue
                 if m.point(other).n_obs > p.n_obs:
-                    m.replace_point(pid, other)
+                    m.replace_point(pid, other, refresh=False)
+                    survivors.append(other)
                 else:
-                    m.replace_point(other, pid)
+                    m.replace_point(other, pid, refresh=False)
+                    survivors.append(pid)
                 merged += 1
             else:
                 m.add_observation(kf.id, pid, idx)
                 added += 1
+        if survivors:
+            m.update_points(np.unique(np.array(survivors, dtype=np.int64)))
     return merged, added
 
 

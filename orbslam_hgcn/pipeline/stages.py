@@ -126,10 +126,13 @@ class ThreadedStages:
     """Local mapping and loop closing in worker threads (see the module text).
 
     process_solver: solve local and global BA in child processes (True), or in the worker
-    threads themselves (False: simpler, but every iteration stalls tracking).
+    threads themselves (False: simpler, but every iteration stalls tracking); solver_nice:
+    niceness added to those processes; worker_nice: to the worker threads (Linux).
     """
 
-    def __init__(self, mapper: Any, loop_closer: Any, process_solver: bool = True) -> None:
+    def __init__(
+        self, mapper: Any, loop_closer: Any, process_solver: bool = True, solver_nice: int = 0, worker_nice: int = 0
+    ) -> None:
         self.mapper, self.loop_closer = mapper, loop_closer
         self.activity = ActivityCounter()
         self._gate = threading.Lock()  # held by the mapper per keyframe, by a pause
@@ -139,10 +142,11 @@ class ThreadedStages:
         self._mapping: Worker | None = None
         self._loop: Worker | None = None
         self._process_solver = process_solver
+        self._solver_nice, self._worker_nice = solver_nice, worker_nice
         self._start()
 
     def _solver(self, name: str) -> Any:
-        solver = ProcessSolver(name) if self._process_solver else InProcessSolver()
+        solver = ProcessSolver(name, nice=self._solver_nice) if self._process_solver else InProcessSolver()
         self._solvers.append(solver)
         return CountingSolver(solver, self.activity)
 
@@ -151,13 +155,13 @@ class ThreadedStages:
         if isinstance(self.mapper.solver.solver, ProcessSolver):
             self.mapper.solver.solver.start()  # gtsam loads in the child while tracking starts
         self.mapper.should_abort = self._abort_ba
-        self._mapping = Worker("mapping", self._map_one).start()
+        self._mapping = Worker("mapping", self._map_one, nice=self._worker_nice).start()
         if self.loop_closer is not None:
             if hasattr(self.loop_closer, "pause_mapping"):
                 self.loop_closer.pause_mapping = self.pause_mapping
             if hasattr(self.loop_closer, "solver"):
                 self.loop_closer.solver = self._solver("global-ba")  # its process starts with the first loop
-            self._loop = Worker("loop", self.loop_closer.process).start()
+            self._loop = Worker("loop", self.loop_closer.process, nice=self._worker_nice).start()
 
     # --- the tracker's side --------------------------------------------------------------
     @property

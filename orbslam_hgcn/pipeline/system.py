@@ -11,7 +11,11 @@ mapped and loop-checked before the next frame, so local mapping is always idle w
 tracker asks, and a run gives the same result every time. Threaded mode (the default of
 ``orbslam-hgcn run``): local mapping and loop closing run in worker threads as in ORB-SLAM,
 the tracker holds the map lock while it tracks a frame, and bundle adjustments are solved
-in child processes. Threads and processes live from the first frame to :meth:`System.close`,
+in child processes. :meth:`System.run` then reads images ahead on a reader thread and
+extracts the next frame's features in a child process while the current one is tracked.
+On a machine with few cores the real-time path goes first: the BA processes and the worker
+threads run at a lower CPU priority (``threads.solver_nice``, ``threads.worker_nice``).
+Threads and processes live from the first frame to :meth:`System.close`,
 which :meth:`System.run` calls at its end (also on Ctrl-C or an error); a stage's exception
 is raised in the caller's thread as a :class:`~orbslam_hgcn.pipeline.worker.WorkerError`.
 """
@@ -20,6 +24,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import queue
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -53,6 +59,7 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.loop.closer import LoopCloser
 from orbslam_hgcn.map import Frame, KeyFrame, Map
 from orbslam_hgcn.mapping.local_mapper import LocalMapper
+from orbslam_hgcn.pipeline.extraction import ExtractionProcess
 from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
 from orbslam_hgcn.pipeline.stages import SequentialStages, ThreadedStages
 from orbslam_hgcn.pipeline.results import (
@@ -112,28 +119,51 @@ class Features:
 
 
 class _Prefetch:
-    """Reads frame i + 1 of a sequence and extracts its features on a thread of its own
-    while frame i is tracked (threaded mode of :meth:`System.run`).
+    """Reads frames ahead of tracking and extracts the features of frame i + 1 while frame
+    i is tracked (threaded mode of :meth:`System.run`).
 
-    Frames are read in order, one at a time, by that thread only (video files need it).
-    The extractor is chosen from the tracker's state when the job starts; if the state
-    has changed when the frame is processed, :meth:`System.process` extracts again.
+    A reader thread decodes up to ``ahead`` frames in order (one reader: video files need
+    it); an error reading a frame is raised when that frame is taken. Extraction runs on a
+    thread of its own, or in the system's extraction process when it has one. The
+    extractor is chosen from the tracker's state when the job starts; if the state has
+    changed when the frame is processed, :meth:`System.process` extracts again.
     """
 
-    def __init__(self, system: System, sequence: Sequence, n: int) -> None:
+    def __init__(self, system: System, sequence: Sequence, n: int, ahead: int = 4) -> None:
         self.system, self.sequence, self.n = system, sequence, n
+        self._records: queue.Queue = queue.Queue(maxsize=ahead)
+        self._stop = threading.Event()
+        self._reader = threading.Thread(target=self._read, name="orbslam-reader", daemon=True)
+        self._reader.start()
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="orbslam-prefetch")
         self._next: tuple[int, Future] | None = None
 
+    def _read(self) -> None:
+        for i in range(self.n):
+            try:
+                item: tuple[FrameRecord | None, BaseException | None] = (self.sequence[i], None)
+            except BaseException as exc:  # noqa: BLE001 - raised where the frame is taken
+                item = (None, exc)
+            while not self._stop.is_set():
+                try:
+                    self._records.put(item, timeout=0.05)
+                    break
+                except queue.Full:
+                    continue
+            if item[1] is not None or self._stop.is_set():
+                return
+
     def _job(self, i: int) -> tuple[FrameRecord, Features]:
-        rec = self.sequence[i]
+        rec, exc = self._records.get()
+        if exc is not None:
+            raise exc
         extractor = self.system._extractor_now()
         t0 = time.perf_counter()
-        kps = self.system._extract(rec.image, extractor)
+        kps = self.system._extract(rec.image, extractor, remote=True)
         return rec, Features(extractor, kps, t0, 1000.0 * (time.perf_counter() - t0))
 
     def take(self, i: int) -> tuple[FrameRecord, Features]:
-        """Frame ``i`` and its features; starts on frame ``i + 1``."""
+        """Frame ``i`` and its features; starts on frame ``i + 1``. Frames are taken in order."""
         if self._next is not None and self._next[0] == i:
             out = self._next[1].result()
         else:
@@ -145,7 +175,14 @@ class _Prefetch:
         if self._next is not None:
             self._next[1].cancel()
             self._next = None
-        self._pool.shutdown(wait=True)
+        self._pool.shutdown(wait=True)  # a running job still gets its frame from the reader
+        self._stop.set()
+        while True:
+            try:
+                self._records.get_nowait()
+            except queue.Empty:
+                break
+        self._reader.join()
 
 
 @dataclass
@@ -184,6 +221,9 @@ class System:
         self.extractor = ORBExtractor(c.orb)
         n_init = max(1, int(round(c.orb.n_features * c.tracking.init_features_factor)))
         self.init_extractor = ORBExtractor(dataclasses.replace(c.orb, n_features=n_init))
+        # Threaded runs with threads.extraction_process: both extractors in a child process
+        # (started by the first run, stopped by close()).
+        self._extraction: ExtractionProcess | None = None
         # With a vocabulary, keyframes go into one keyframe database that relocalisation and
         # loop closing share; the loop closer indexes them (and closes loops when
         # loop_closing.enabled).
@@ -202,8 +242,10 @@ class System:
         self.timings: dict[str, list[float]] = {
             "extraction": [], "tracking": [], "tracking_cpu": [], "frame": [], "lock_wait": [],
         }  # fmt: skip
-        # Per frame of timings["frame"]: whether a BA or pose graph was being solved during it.
+        # Per frame of timings["frame"]: whether a BA or pose graph was being solved during it,
+        # and when (time.perf_counter) the frame's extraction started.
         self.frame_optimising: list[bool] = []
+        self.frame_started: list[float] = []
         self.events: list[dict[str, Any]] = []
         self.n_resets = 0
         # Called as observer(system, record, result) after every frame of :meth:`run`
@@ -219,7 +261,10 @@ class System:
                 self._stages = SequentialStages(self.mapper, self.loop_closer)
             else:
                 self._share_map()
-                self._stages = ThreadedStages(self.mapper, self.loop_closer, self.configs.threads.process_solver)
+                t = self.configs.threads
+                self._stages = ThreadedStages(
+                    self.mapper, self.loop_closer, t.process_solver, t.solver_nice, t.worker_nice
+                )
         return self._stages
 
     def _share_map(self) -> None:
@@ -235,8 +280,13 @@ class System:
         """Finish the keyframes handed to local mapping and loop closing (``drain``; else
         drop them), stop their threads and solver processes. Raises a stage's error."""
         stages, self._stages = self._stages, None
-        if stages is not None:
-            stages.close(drain)
+        extraction, self._extraction = self._extraction, None
+        try:
+            if stages is not None:
+                stages.close(drain)
+        finally:
+            if extraction is not None:
+                extraction.close()
 
     def __enter__(self) -> System:
         return self
@@ -260,9 +310,14 @@ class System:
         initializing = self.tracker.state == TrackingState.NOT_INITIALIZED
         return self.init_extractor if initializing else self.extractor
 
-    def _extract(self, image: np.ndarray, extractor: ORBExtractor) -> KeypointSet:
+    def _extract(self, image: np.ndarray, extractor: ORBExtractor, remote: bool = False) -> KeypointSet:
+        """Keypoints of ``image`` by ``extractor``; with ``remote``, in the extraction
+        process when the system has one."""
         if image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        if remote and self._extraction is not None:
+            name = "init" if extractor is self.init_extractor else "normal"
+            return self._extraction.extract(name, image)[0]
         return extractor.extract(image, self.camera)
 
     def process(
@@ -304,6 +359,7 @@ class System:
         for kf in result.new_keyframes:
             self._on_keyframe(kf)
         self.timings["frame"].append(1000.0 * (time.perf_counter() - t0))
+        self.frame_started.append(t0)
         optimising = optimising or stages.optimising or stages.activity.started != started
         self.frame_optimising.append(bool(optimising))
         return result
@@ -345,7 +401,14 @@ class System:
         bar = tqdm(total=n, unit="frame", disable=not show, dynamic_ncols=True)
         t0 = time.perf_counter()
         done, interrupted = 0, False
-        prefetch = _Prefetch(self, sequence, n) if not self.sequential and self.configs.threads.prefetch else None
+        threads = self.configs.threads
+        prefetch = None
+        if not self.sequential and threads.prefetch:
+            if threads.extraction_process and self._extraction is None:
+                self._extraction = ExtractionProcess(
+                    {"init": self.init_extractor.config, "normal": self.extractor.config}, self.camera
+                )
+            prefetch = _Prefetch(self, sequence, n)
         try:
             for i in range(n):
                 rec, features = prefetch.take(i) if prefetch is not None else (sequence[i], None)

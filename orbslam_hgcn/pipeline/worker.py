@@ -10,7 +10,9 @@ re-raises it.
 from __future__ import annotations
 
 import logging
+import os
 import queue
+import sys
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -24,11 +26,25 @@ class WorkerError(RuntimeError):
     """A stage raised inside its worker thread; ``__cause__`` holds the original exception."""
 
 
-class Worker:
-    """Run ``handler(item)`` for each submitted item in a background thread, in order."""
+def _lower_thread_priority(nice: int) -> None:
+    """Add ``nice`` to the calling thread's niceness (Linux gives every thread its own;
+    elsewhere, or when refused, nothing changes)."""
+    if not (sys.platform.startswith("linux") and hasattr(os, "setpriority")):
+        return
+    tid = threading.get_native_id()
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + nice, 19))
+    except OSError as exc:
+        log.debug("could not lower the priority of thread %d: %s", tid, exc)
 
-    def __init__(self, name: str, handler: Callable[[Any], None], maxsize: int = 0) -> None:
+
+class Worker:
+    """Run ``handler(item)`` for each submitted item in a background thread, in order;
+    ``nice`` lowers the thread's CPU priority (Linux)."""
+
+    def __init__(self, name: str, handler: Callable[[Any], None], maxsize: int = 0, nice: int = 0) -> None:
         self.name = name
+        self.nice = int(nice)
         self._handler = handler
         self._queue: queue.Queue = queue.Queue(maxsize=maxsize)
         self._stop = threading.Event()
@@ -95,6 +111,8 @@ class Worker:
                 return
 
     def _run(self) -> None:
+        if self.nice > 0:
+            _lower_thread_priority(self.nice)
         while True:
             item = self._queue.get()
             try:

@@ -1,0 +1,200 @@
+"""A persistent child process that answers method calls on one object.
+
+Used where Python work must not share the GIL with tracking: gtsam keeps the GIL while it
+iterates (bundle adjustment, :mod:`orbslam_hgcn.backend.solver`), and ORB extraction has
+Python parts between its OpenCV calls (:mod:`orbslam_hgcn.pipeline.extraction`).
+
+The child is started with the ``spawn`` method (safe with threads, unlike ``fork``) and
+builds its object as ``factory(*factory_args)`` (both must pickle). A request is a method
+name and its arguments, sent through a pipe; the calling thread waits on the pipe, which
+releases the GIL, and between waits it forwards a stop request (a shared event the method
+gets as ``should_stop`` when the call is ``stoppable``) and notices a child that died. An
+exception in the child comes back as ``error_type`` with the child's traceback; the child
+stays up for the next request. A child that died is reported as ``error_type`` by the
+request that finds it dead; it is replaced (as one interrupted mid-request) on the next.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import signal
+import threading
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+StopFn = Callable[[], bool] | None
+
+
+def _serve(conn: Any, abort: Any, factory: Callable[..., Any], factory_args: tuple, nice: int) -> None:
+    """Child process loop: answer ``(method, args, stoppable)`` requests until ``None`` or a
+    closed pipe."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    if nice > 0 and hasattr(os, "nice"):
+        os.nice(nice)
+    obj = factory(*factory_args)
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg is None:
+            return
+        op, args, stoppable = msg
+        try:
+            if op == "ping":
+                reply: tuple = ("ok", "pong")
+            elif op.startswith("_") or not callable(getattr(obj, op, None)):
+                raise ValueError(f"unknown request {op!r}")
+            else:
+                method = getattr(obj, op)
+                reply = ("ok", method(*args, should_stop=abort.is_set) if stoppable else method(*args))
+        except Exception as exc:  # noqa: BLE001 - sent to the parent, which raises error_type
+            reply = ("error", f"{type(exc).__name__}: {exc}", traceback.format_exc())
+        try:
+            conn.send(reply)
+        except (OSError, ValueError):
+            return  # the parent went away
+
+
+class ChildProcess:
+    """One persistent child serving ``factory(*factory_args)``; one request at a time
+    (callers from several threads queue on a lock).
+
+    name: names the process (``orbslam-<name>``) and the errors; error_type: raised for a
+    failed request or a lost child; poll_s: how often the waiting thread looks at
+    ``should_stop`` and at the child's health; nice: added to the child's niceness (lower
+    CPU priority) where the platform has ``os.nice``.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        factory: Callable[..., Any],
+        factory_args: tuple = (),
+        error_type: type[Exception] = RuntimeError,
+        poll_s: float = 0.005,
+        nice: int = 0,
+    ) -> None:
+        self.name = name
+        self.nice = int(nice)
+        self.factory, self.factory_args = factory, factory_args
+        self.error_type = error_type
+        self.poll_s = poll_s
+        self._ctx = mp.get_context("spawn")
+        self._lock = threading.Lock()
+        self._proc: Any = None
+        self._conn: Any = None
+        self._abort: Any = None
+        self.requests = 0
+
+    @property
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    def start(self) -> ChildProcess:
+        """Start the child (no-op when it runs)."""
+        with self._lock:
+            self._start()
+        return self
+
+    def _start(self) -> None:
+        if self.alive:
+            return
+        self._close_locked()
+        parent, child = self._ctx.Pipe()
+        self._abort = self._ctx.Event()
+        proc = self._ctx.Process(
+            target=_serve, args=(child, self._abort, self.factory, self.factory_args, self.nice),
+            name=f"orbslam-{self.name}", daemon=True,
+        )  # fmt: skip
+        try:
+            proc.start()
+        except BaseException:
+            parent.close()
+            raise
+        finally:
+            child.close()
+        self._proc, self._conn = proc, parent
+        log.debug("%s process started (pid %d)", self.name, self._proc.pid)
+
+    def call(self, op: str, args: tuple = (), should_stop: StopFn = None, stoppable: bool = False) -> Any:
+        """``op(*args)`` on the child's object (with ``should_stop=`` when ``stoppable``);
+        returns its result. Raises ``error_type`` when it fails or the child is lost."""
+        with self._lock:
+            if self._proc is not None and not self._proc.is_alive():
+                code = self._proc.exitcode
+                self._close_locked()
+                raise self.error_type(f"{self.name} process died (exit code {code}) before {op}")
+            self._start()
+            self._abort.clear()
+            try:
+                if should_stop is not None and should_stop():
+                    self._abort.set()
+                self._conn.send((op, args, stoppable))
+                while not self._conn.poll(self.poll_s):
+                    if not self._proc.is_alive():
+                        raise self.error_type(
+                            f"{self.name} process died (exit code {self._proc.exitcode}) during {op}"
+                        )
+                    if should_stop is not None and not self._abort.is_set() and should_stop():
+                        self._abort.set()
+                reply = self._conn.recv()
+            except self.error_type:
+                self._close_locked()
+                raise
+            except (EOFError, OSError) as exc:
+                code = self._proc.exitcode if self._proc is not None else None
+                self._close_locked()
+                raise self.error_type(f"{self.name} process lost during {op} (exit code {code})") from exc
+            except BaseException:
+                # Interrupted while waiting (Ctrl-C, a failing callback): the reply would be
+                # out of step with the next request, so the process is replaced.
+                self._close_locked()
+                raise
+            self.requests += 1
+            if reply[0] == "ok":
+                return reply[1]
+            raise self.error_type(
+                f"{self.name} process: {op} failed: {reply[1]}\n--- in the child process ---\n{reply[2]}"
+            )
+
+    def kill(self) -> None:
+        """Kill the child at once (tests use it to check that a lost child is reported)."""
+        if self._proc is not None:
+            self._proc.kill()
+            self._proc.join()
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Stop the child and wait for it (terminated if it does not exit in time)."""
+        with self._lock:
+            self._close_locked(timeout)
+
+    def _close_locked(self, timeout: float = 5.0) -> None:
+        proc, conn = self._proc, self._conn
+        self._proc = self._conn = None
+        if self._abort is not None:
+            self._abort.set()  # a stoppable request still running stops at its next check
+        if conn is not None:
+            try:
+                conn.send(None)
+            except (OSError, ValueError):
+                pass
+        if proc is not None:
+            proc.join(timeout)
+            if proc.is_alive():
+                log.warning("%s process did not stop in %.0f s; terminating it", self.name, timeout)
+                proc.terminate()
+                proc.join(timeout)
+        if conn is not None:
+            conn.close()
+
+    def __enter__(self) -> ChildProcess:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,63 @@
+"""ORB extraction in a child process (threaded runs of :class:`~orbslam_hgcn.pipeline.system.System`).
+
+Extraction is a chain of OpenCV calls with Python between them (reading the FAST corner
+scores, the quadtree, the keypoint objects handed to the descriptor). OpenCV releases the
+GIL, the Python parts hold it, so on a thread of the tracking process extraction slows
+tracking and local mapping down and is slowed down by them. In a child process
+(:class:`~orbslam_hgcn.childprocess.ChildProcess`) it runs beside them; only the image
+goes in and the keypoint arrays come back (about 0.3 MB and 60 kB per frame).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from orbslam_hgcn.childprocess import ChildProcess
+from orbslam_hgcn.config import ORBConfig
+from orbslam_hgcn.features.keypoints import KeypointSet
+from orbslam_hgcn.features.orb import ORBExtractor
+from orbslam_hgcn.geometry.camera import PinholeCamera
+
+log = logging.getLogger(__name__)
+
+
+class ExtractionError(RuntimeError):
+    """The extraction process failed or died; the message carries its traceback."""
+
+
+class Extractors:
+    """ORB extractors by name over one camera: the object the child process serves."""
+
+    def __init__(self, configs: dict[str, ORBConfig], camera: PinholeCamera) -> None:
+        self.extractors = {name: ORBExtractor(c) for name, c in configs.items()}
+        self.camera = camera
+
+    def extract(self, name: str, image: np.ndarray) -> tuple[KeypointSet, float]:
+        """Keypoints of a (H, W) uint8 image by extractor ``name``, and the time it took (ms)."""
+        t0 = time.perf_counter()
+        kps = self.extractors[name].extract(image, self.camera)
+        return kps, 1000.0 * (time.perf_counter() - t0)
+
+
+class ExtractionProcess:
+    """Extract with the extractors ``configs`` ({name: ORBConfig}) in a child process.
+
+    The process starts on the first request and lives until :meth:`close`.
+    """
+
+    def __init__(self, configs: dict[str, ORBConfig], camera: PinholeCamera) -> None:
+        self._child = ChildProcess("extraction", Extractors, (dict(configs), camera), ExtractionError)
+
+    def extract(self, name: str, image: np.ndarray) -> tuple[KeypointSet, float]:
+        """As :meth:`Extractors.extract`, in the child process. Raises ExtractionError."""
+        return self._child.call("extract", (name, np.ascontiguousarray(image)))
+
+    @property
+    def alive(self) -> bool:
+        return self._child.alive
+
+    def close(self) -> None:
+        self._child.close()
