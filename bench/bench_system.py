@@ -7,8 +7,9 @@ replayed in a synthetic office).
 
 Modes: ``sequential`` (local mapping after each keyframe, on the tracking thread),
 ``threaded`` (local mapping and loop closing in worker threads, bundle adjustments solved
-in a child process) and ``threaded-inproc`` (worker threads, BA solved in the mapping
-thread: gtsam keeps the GIL, so tracking stalls while it iterates).
+in a child process, the next frame's ORB features extracted in another) and
+``threaded-inproc`` (worker threads, BA solved in the mapping thread: gtsam keeps the GIL,
+so tracking stalls while it iterates).
 
 Each run is made in its own process (so peak memory is its own). Images are decoded by a
 reader thread a few frames ahead (``--preload``: all of them before the clock starts);
@@ -18,13 +19,19 @@ handing keyframes over; in threaded mode the extraction runs on the prefetch thr
 the previous frame is tracked, so the latency also holds the wait for that frame): median,
 p95, max, over all frames and over the frames during which a bundle adjustment or pose
 graph was being solved; map-lock waits; local mapping per keyframe; ATE after Sim(3)
-alignment; peak RSS of the process and of its children (the BA process). ``--profile``
-runs the tracking thread under cProfile and prints where its time goes.
+alignment; peak RSS of the process and of its children (the BA process; with
+``--preload`` the children's figure also counts the parent's pages at fork time, so quote
+memory from runs without it). ``--profile`` runs the tracking thread under cProfile and
+prints where its time goes. ``--rate HZ`` hands frames out no faster than a camera of that
+rate would, and also prints the latency from each frame's due time (which grows when the
+system falls behind the camera). ``--config YAML`` overrides stage sections (``threads``,
+``local_mapping``, ...).
 
 Usage::
 
     python bench/bench_system.py [--sequences loop_default fr3_replay] [--modes sequential threaded]
-                                 [--max-frames N] [--loop] [--preload] [--profile] [--cache DIR]
+                                 [--max-frames N] [--loop] [--preload] [--rate HZ] [--profile]
+                                 [--config YAML] [--cache DIR] [--json FILE]
 """
 
 from __future__ import annotations
