@@ -19,7 +19,7 @@ handing keyframes over; in threaded mode the extraction runs on the prefetch thr
 the previous frame is tracked, so the latency also holds the wait for that frame): median,
 p95, max, over all frames and over the frames during which a bundle adjustment or pose
 graph was being solved; map-lock waits; local mapping per keyframe; ATE after Sim(3)
-alignment; peak RSS of the process and of its children (the BA process; with
+alignment; peak RSS of the process and of its children (the BA and extraction processes; with
 ``--preload`` the children's figure also counts the parent's pages at fork time, so quote
 memory from runs without it). ``--profile`` runs the tracking thread under cProfile and
 prints where its time goes. ``--rate HZ`` hands frames out no faster than a camera of that
@@ -123,7 +123,7 @@ def _summary(v) -> dict:
 
 
 def _children_cpu_s() -> float:
-    """CPU seconds of the child processes that have ended (the BA process ends with the run)."""
+    """CPU seconds of the child processes that have ended (the BA and extraction processes end with the run)."""
     ru = resource.getrusage(resource.RUSAGE_CHILDREN)
     return ru.ru_utime + ru.ru_stime
 
@@ -211,7 +211,7 @@ def report(r: dict) -> None:
     paced = f"frames handed out at {r['rate']:g}/s" if r.get("rate") else "frames as fast as taken"
     images = "images decoded before the clock started" if r.get("preload") else "images decoded during the run"
     print(f"\n== {r['sequence']} / {r['mode']} ({paced}; {images}): {r['frames']} frames in {r['wall_s']:.1f} s "
-          f"-> {r['fps']:.2f} frames/s (CPU: this process {r['cpu_s']:.0f} s, BA process "
+          f"-> {r['fps']:.2f} frames/s (CPU: this process {r['cpu_s']:.0f} s, BA and extraction processes "
           f"{r.get('cpu_children_s', 0):.0f} s; load avg {r['load'][0]:.1f} -> {r['load'][1]:.1f})")
     print(f"PNG decode (reader thread) ms/frame:  {_fmt(r['decode_ms'])}; tracking waited on the reader "
           f"{r['reader_wait_ms_total'] / 1000:.1f} s in all")
