@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections import Counter
+from collections.abc import Iterable
 from typing import NamedTuple
 
 import numpy as np
@@ -88,7 +89,7 @@ class Map:
             cur = int(kf._point_ids[idx])
             if cur >= 0:
                 raise ValueError(f"slot {idx} of keyframe {kf_id} already holds point {cur}")
-            self._bump_shared_many(kf, obs, +1)
+            self._bump_shared(kf, obs, +1)
             obs[kf_id] = int(idx)
             kf._point_ids[idx] = pid
             return True
@@ -120,13 +121,15 @@ class Map:
         idx = obs.pop(kf_id)
         kf = self._kfs[kf_id]
         kf._point_ids[idx] = -1
-        self._bump_shared_many(kf, obs, -1)
+        self._bump_shared(kf, obs, -1)
         if self._pts.ref_kf[pid] == kf_id:
             self._pts.ref_kf[pid] = next(iter(obs)) if obs else -1
 
-    def _bump_shared_many(self, kf: KeyFrame, others: dict[int, int], delta: int) -> None:
-        """:meth:`_bump_shared` between ``kf`` and each keyframe id in ``others`` (the
-        observation dict of a point: it runs for every observation added or removed)."""
+    def _bump_shared(self, kf: KeyFrame, others: Iterable[int], delta: int) -> None:
+        """Add ``delta`` to the shared-point count between ``kf`` and each keyframe id in
+        ``others``, both ways (a count reaching 0 drops the link); their covisibility orders
+        are recomputed on next use. ``others`` is usually a point's observation dict: this
+        runs for every observation added or removed."""
         if not others:
             return
         shared, kf_id = kf.shared, kf.id
@@ -144,16 +147,6 @@ class Map:
                 o.shared.pop(kf_id, None)
             o._invalidate_covisibility()
         kf._invalidate_covisibility()
-
-    @staticmethod
-    def _bump_shared(a: KeyFrame, b: KeyFrame, delta: int) -> None:
-        for x, y in ((a, b), (b, a)):
-            n = x.shared.get(y.id, 0) + delta
-            if n > 0:
-                x.shared[y.id] = n
-            else:
-                x.shared.pop(y.id, None)
-            x._invalidate_covisibility()
 
     # --- points ------------------------------------------------------------------------
     def set_bad_point(self, pid: int) -> None:
@@ -310,7 +303,7 @@ class Map:
                 for other in set(counts) | set(kf.shared):
                     delta = counts.get(other, 0) - kf.shared.get(other, 0)
                     if delta:
-                        self._bump_shared(kf, self._kfs[other], delta)
+                        self._bump_shared(kf, (other,), delta)
             if kf.first_connection and kf.id != self.origin_id:
                 # The best covisible keyframe already in the tree (in ORB-SLAM's order of
                 # events every neighbour is older, hence in the tree; this also holds when
