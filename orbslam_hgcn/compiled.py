@@ -1,0 +1,56 @@
+"""The compiled per-frame kernels: their numba settings and their warm-up.
+
+Two steps of tracking run on every frame over a few hundred points, where numpy's
+per-call overhead on small arrays outweighs the arithmetic: the pose-only optimisation
+(:mod:`orbslam_hgcn.backend.pose_only`) and the window search of projected points
+(:mod:`orbslam_hgcn.features.projection_search`). They are compiled with numba
+(:data:`jit`): without the GIL, so other threads run meanwhile, and cached on disk beside
+their modules (or in numba's user cache when the package folder is read-only).
+
+The first run after an install compiles them (about 15 s on a 2-core machine); later runs
+load them from the cache (about 0.5 s). :func:`warm_up` does either before the first frame,
+so that the time is not spent inside a frame's tracking.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numba
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+jit = numba.njit(cache=True, nogil=True)
+
+
+def warm_up() -> float:
+    """Compile (or load from the cache) every kernel by running it on a tiny problem with
+    the argument types of a real run. Returns the seconds it took."""
+    from orbslam_hgcn.backend.pose_only import optimize_pose
+    from orbslam_hgcn.features.grid import FeatureGrid
+    from orbslam_hgcn.features.keypoints import KeypointSet
+    from orbslam_hgcn.features.projection_search import fuse_candidates, search_by_projection
+    from orbslam_hgcn.geometry.camera import PinholeCamera
+
+    t0 = time.perf_counter()
+    camera = PinholeCamera(100.0, 100.0, 50.0, 50.0, 100, 100)
+    uv = np.array([[20.0, 30.0], [60.0, 40.0], [45.0, 70.0], [75.0, 75.0]])
+    X = np.column_stack([(uv - 50.0) / 100.0 * 2.0, np.full(len(uv), 2.0)])
+    optimize_pose(np.eye(4), X, uv, np.ones(len(uv)), camera.K)
+    n = len(uv)
+    kps = KeypointSet(
+        uv_raw=uv.astype(np.float32), uv=uv, octave=np.zeros(n, np.int32), angle=np.zeros(n, np.float32),
+        response=np.ones(n, np.float32), desc=np.zeros((n, 32), np.uint8), scale_factors=np.array([1.0, 1.2]),
+    )  # fmt: skip
+    grid = FeatureGrid(kps, camera)
+    search_by_projection(kps, grid, uv, kps.octave, kps.desc, 2.0, ratio=0.8, available=np.ones(n, bool))
+    fuse_candidates(
+        kps, grid, camera, np.eye(4), X, kps.desc, X / np.linalg.norm(X, axis=1, keepdims=True),
+        np.zeros(n), np.full(n, 10.0),
+    )  # fmt: skip
+    seconds = time.perf_counter() - t0
+    if seconds > 2.0:
+        log.info("compiled the tracking kernels in %.1f s (cached for later runs)", seconds)
+    return seconds
