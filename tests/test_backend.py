@@ -202,9 +202,17 @@ def test_ba_stops_on_request_and_on_time_budget():
     sc, fixed, T0, P0, uv, _ = _ba_scene(8)
     args = (sc.obs_kf, sc.obs_pt, uv, sc.inv_sigma2, sc.K)
     calls = []
-    stopped = local_bundle_adjustment(T0, fixed, P0, *args, should_stop=lambda: calls.append(1) or True)
+    anytime = BackendConfig(local_ba_abort_robust=True)
+    stopped = local_bundle_adjustment(T0, fixed, P0, *args, anytime, should_stop=lambda: calls.append(1) or True)
     np.testing.assert_array_equal(stopped.T_cw, T0)
     assert calls, "the stop flag is polled"
+    # By default the robust iterations run whole and the stop takes effect before the
+    # refining ones: the result is that of the robust stage alone.
+    robust_only = bundle_adjustment(T0, fixed, P0, *args, iterations=BackendConfig().local_ba_iterations)
+    late = local_bundle_adjustment(T0, fixed, P0, *args, should_stop=lambda: True)
+    assert not np.allclose(late.T_cw, T0)
+    np.testing.assert_allclose(late.T_cw, robust_only.T_cw, atol=1e-12)
+    np.testing.assert_allclose(late.points, robust_only.points, atol=1e-12)
     timed = local_bundle_adjustment(T0, fixed, P0, *args, config=BackendConfig(ba_time_budget_s=1e-9))
     np.testing.assert_array_equal(timed.points, P0)
     full = local_bundle_adjustment(T0, fixed, P0, *args)

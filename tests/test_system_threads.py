@@ -197,10 +197,15 @@ def test_process_solver_gives_the_in_process_results():
     for x, y in ((a.T_cw, b.T_cw), (a.points, b.points), (ga.T_cw, gb.T_cw), (ga.points, gb.points), (ea, eb)):
         np.testing.assert_allclose(y, x, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(a.outlier, b.outlier)
-    # A stop request is forwarded to the child: nothing is optimised.
+    # A stop request is forwarded to the child: nothing is optimised when it may end the
+    # robust iterations, and only those run by default.
     with ProcessSolver("test-solver") as remote:
-        stopped, _ = remote.local_ba(p, cfg, 0.0, should_stop=lambda: True)
+        stopped, _ = remote.local_ba(p, BackendConfig(local_ba_abort_robust=True), 0.0, should_stop=lambda: True)
+        robust_only, _ = remote.local_ba(p, cfg, 0.0, should_stop=lambda: True)
     np.testing.assert_array_equal(stopped.T_cw, p.T_cw)
+    late, _ = local.local_ba(p, cfg, 0.0, should_stop=lambda: True)
+    assert not np.allclose(robust_only.T_cw, p.T_cw)
+    np.testing.assert_allclose(robust_only.T_cw, late.T_cw, rtol=0, atol=1e-9)
 
 
 def test_process_solver_errors_surface():

@@ -188,6 +188,7 @@ def bundle_adjustment(
     robust: bool = True,
     config: BackendConfig | None = None,
     should_stop: Callable[[], bool] | None = None,
+    stop_first: bool = True,
 ) -> BAResult:
     """Jointly refine keyframe poses and points from their observations.
 
@@ -197,7 +198,8 @@ def bundle_adjustment(
     K: (3, 3) intrinsics. Runs ``iterations`` LM iterations (Huber kernel if ``robust``);
     with ``refine_iterations`` > 0, then excludes outliers and runs that many more without
     kernel (ORB-SLAM local BA). ``should_stop`` is polled between iterations (ORB-SLAM's
-    abort flag); BackendConfig.ba_time_budget_s caps the wall time.
+    abort flag), from the refining iterations on when ``stop_first`` is False;
+    BackendConfig.ba_time_budget_s caps the wall time.
     Returns BAResult(T_cw, points, outlier (O,) bool).
     """
     cfg = config or BackendConfig()
@@ -206,7 +208,7 @@ def bundle_adjustment(
         raise ValueError("fixed must have one flag per pose")
     deadline = time.perf_counter() + cfg.ba_time_budget_s if cfg.ba_time_budget_s > 0 else None
     active = np.ones(len(p.obs_kf), dtype=bool)
-    T_new, X_new = _optimise(p, active, robust, iterations, cfg, deadline, should_stop)
+    T_new, X_new = _optimise(p, active, robust, iterations, cfg, deadline, should_stop if stop_first else None)
     if refine_iterations > 0:
         chi2, z = observation_chi2(T_new, X_new, p.obs_kf, p.obs_pt, p.uv, p.inv_sigma2, p.K)
         active = (chi2 <= cfg.chi2_mono) & (z > 0)
@@ -220,12 +222,13 @@ def local_bundle_adjustment(
     T_cw, fixed, points, obs_kf, obs_pt, uv, inv_sigma2, K, config: BackendConfig | None = None, should_stop=None
 ) -> BAResult:
     """ORB-SLAM local BA: robust iterations, outliers out, refining iterations (see
-    :func:`bundle_adjustment` for the arrays; counts from BackendConfig)."""
+    :func:`bundle_adjustment` for the arrays; counts from BackendConfig, and whether
+    ``should_stop`` may end the robust iterations: ``local_ba_abort_robust``)."""
     cfg = config or BackendConfig()
     return bundle_adjustment(
         T_cw, fixed, points, obs_kf, obs_pt, uv, inv_sigma2, K,
         iterations=cfg.local_ba_iterations, refine_iterations=cfg.local_ba_refine_iterations,
-        robust=True, config=cfg, should_stop=should_stop,
+        robust=True, config=cfg, should_stop=should_stop, stop_first=cfg.local_ba_abort_robust,
     )  # fmt: skip
 
 

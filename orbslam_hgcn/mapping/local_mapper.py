@@ -12,7 +12,9 @@ Sec. VI; LocalMapping::Run of ORB-SLAM2), in its order:
 5. local bundle adjustment (gtsam, via :mod:`orbslam_hgcn.backend`): the keyframe and its
    covisible keyframes free, every other keyframe seeing their points fixed, Huber
    kernel, 5 iterations, outliers out, 10 more, CPU time bounded, and stopped early when
-   ``should_abort`` says so (ORB-SLAM's abort flag, raised when a new keyframe waits);
+   ``should_abort`` says so (ORB-SLAM's abort flag, raised when a new keyframe waits; by
+   default it takes effect after the 5 robust iterations, see
+   ``BackendConfig.local_ba_abort_robust``);
 6. redundant keyframe culling.
 
 Each step holds the map lock; local BA holds it only to cut its window from the map and

@@ -16,8 +16,9 @@ processed), ``check()`` (re-raise a stage's failure) and ``close(drain)``.
   so the tracking thread keeps the GIL meanwhile;
 * keyframe acceptance: local mapping accepts a keyframe when idle, or while its local BA
   runs, in which case the waiting keyframe aborts that BA (ORB-SLAM's ``InterruptBA``
-  followed by the insertion on the next frame, in one step); a stop request (loop
-  correction, shutdown) aborts it too;
+  followed by the insertion on the next frame, in one step) once its robust iterations
+  are done (``BackendConfig.local_ba_abort_robust``); a stop request (loop correction,
+  shutdown) aborts it too;
 * the loop closer pauses local mapping for the correction and for writing back the global
   BA: :meth:`ThreadedStages.pause_mapping` waits until the keyframe being mapped is done
   and holds the next one back (ORB-SLAM ``RequestStop`` / ``Release``).
