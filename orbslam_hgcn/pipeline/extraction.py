@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import time
 
+import cv2
 import numpy as np
 
 from orbslam_hgcn.childprocess import ChildProcess
@@ -32,6 +33,9 @@ class Extractors:
     """ORB extractors by name over one camera: the object the child process serves."""
 
     def __init__(self, configs: dict[str, ORBConfig], camera: PinholeCamera) -> None:
+        # One OpenCV thread: its parallel loops (resizing, blurring) only add switches when
+        # every core is busy with tracking, mapping and BA.
+        cv2.setNumThreads(1)
         self.extractors = {name: ORBExtractor(c) for name, c in configs.items()}
         self.camera = camera
 
