@@ -7,7 +7,7 @@ per-call overhead on small arrays outweighs the arithmetic: the pose-only optimi
 (:data:`jit`): without the GIL, so other threads run meanwhile, and cached on disk beside
 their modules (or in numba's user cache when the package folder is read-only).
 
-The first run after an install compiles them (about 15 s on a 2-core machine); later runs
+The first run after an install compiles them (7-10 s on a 2-core machine); later runs
 load them from the cache (about 0.5 s). :func:`warm_up` does either before the first frame,
 so that the time is not spent inside a frame's tracking.
 """
