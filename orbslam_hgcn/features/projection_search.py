@@ -119,6 +119,17 @@ def _best_two_in_windows(
     return best_f, best_d, second_f, second_d
 
 
+def _scan(keypoints: KeypointSet, grid: FeatureGrid, x, y, r, lo, hi, desc, available, chi2_gate: float):
+    """:func:`_best_two_in_windows` of queries (x, y, r, lo, hi: (M,); desc: (M, 32)) over
+    the keypoints of ``grid``; available: (N,) bool."""
+    return _best_two_in_windows(
+        np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(y, dtype=np.float64),
+        np.ascontiguousarray(r, dtype=np.float64), lo, hi, _words(desc), _words(keypoints.desc),
+        grid.uv, grid.octave, grid.order, grid.start, available,
+        grid.min_x, grid.min_y, grid.inv_w, grid.inv_h, grid.cols, grid.rows, keypoints.inv_level_sigma2, chi2_gate,
+    )  # fmt: skip
+
+
 def search_by_projection(
     keypoints: KeypointSet,
     grid: FeatureGrid,
@@ -158,11 +169,7 @@ def search_by_projection(
     lo = np.maximum(octave + level_range[0], 0)
     hi = octave + level_range[1]
     avail = np.ones(len(keypoints), dtype=bool) if available is None else np.asarray(available, dtype=bool)
-    best, bd, second, sd = _best_two_in_windows(
-        uv[:, 0].copy(), uv[:, 1].copy(), np.ascontiguousarray(r), lo, hi, _words(desc), _words(keypoints.desc),
-        grid.uv, grid.octave, grid.order, grid.start, avail,
-        grid.min_x, grid.min_y, grid.inv_w, grid.inv_h, grid.cols, grid.rows, keypoints.inv_level_sigma2, 0.0,
-    )  # fmt: skip
+    best, bd, second, sd = _scan(keypoints, grid, uv[:, 0], uv[:, 1], r, lo, hi, desc, avail, 0.0)
     ok = (best >= 0) & (bd <= max_dist)
     if ratio is not None:
         has2 = second >= 0
@@ -227,11 +234,10 @@ def fuse_candidates(
     sf = float(keypoints.scale_factors[1]) if keypoints.n_levels > 1 else 1.2
     lvl = predict_octave(np.asarray(max_distance)[cand], dist3[cand], sf, keypoints.n_levels)
     r = th * keypoints.scale_factors[lvl]
-    best, bd, _, _ = _best_two_in_windows(
-        uv[cand, 0], uv[cand, 1], r, lvl - 1, lvl, _words(np.asarray(desc)[cand]), _words(keypoints.desc),
-        grid.uv, grid.octave, grid.order, grid.start, np.ones(len(keypoints), dtype=bool),
-        grid.min_x, grid.min_y, grid.inv_w, grid.inv_h, grid.cols, grid.rows, keypoints.inv_level_sigma2, CHI2_MONO,
-    )  # fmt: skip
+    everywhere = np.ones(len(keypoints), dtype=bool)
+    best, bd, _, _ = _scan(
+        keypoints, grid, uv[cand, 0], uv[cand, 1], r, lvl - 1, lvl, np.asarray(desc)[cand], everywhere, CHI2_MONO
+    )
     good = (best >= 0) & (bd <= TH_LOW)
     match[cand[good]] = best[good]
     out_dist[cand[good]] = bd[good]

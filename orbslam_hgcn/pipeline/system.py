@@ -223,8 +223,9 @@ class System:
         n_init = max(1, int(round(c.orb.n_features * c.tracking.init_features_factor)))
         self.init_extractor = ORBExtractor(dataclasses.replace(c.orb, n_features=n_init))
         # Threaded runs with threads.extraction_process: both extractors in a child process
-        # (started by the first run, stopped by close()).
+        # (started by the first run, stopped by close()), which knows them by these names.
         self._extraction: ExtractionProcess | None = None
+        self._extractor_names = {"init": self.init_extractor, "normal": self.extractor}
         # With a vocabulary, keyframes go into one keyframe database that relocalisation and
         # loop closing share; the loop closer indexes them (and closes loops when
         # loop_closing.enabled).
@@ -320,7 +321,7 @@ class System:
         if image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         if remote and self._extraction is not None:
-            name = "init" if extractor is self.init_extractor else "normal"
+            name = next(k for k, e in self._extractor_names.items() if e is extractor)
             return self._extraction.extract(name, image)[0]
         return extractor.extract(image, self.camera)
 
@@ -410,7 +411,7 @@ class System:
         if not self.sequential and threads.prefetch:
             if threads.extraction_process and self._extraction is None:
                 self._extraction = ExtractionProcess(
-                    {"init": self.init_extractor.config, "normal": self.extractor.config}, self.camera
+                    {name: e.config for name, e in self._extractor_names.items()}, self.camera
                 )
             prefetch = _Prefetch(self, sequence, n)
         try:
