@@ -5,7 +5,10 @@ per-call overhead on small arrays outweighs the arithmetic: the pose-only optimi
 (:mod:`orbslam_hgcn.backend.pose_only`) and the window search of projected points
 (:mod:`orbslam_hgcn.features.projection_search`). They are compiled with numba
 (:data:`jit`): without the GIL, so other threads run meanwhile, and cached on disk beside
-their modules (or in numba's user cache when the package folder is read-only).
+their modules (or in numba's user cache when the package folder is read-only). ORB
+extraction's orientation and descriptor loops (:mod:`orbslam_hgcn.features.rbrief`) use
+the same settings; they are loaded when an extractor is built and, in the extraction
+process, by one extraction before the first frame.
 
 The first run after an install compiles them (7-10 s on a 2-core machine); later runs
 load them from the cache (about 0.5 s). :func:`warm_up` does either before the first frame,

@@ -8,8 +8,9 @@ import pytest
 
 from orbslam_hgcn.config import ORBConfig, load_camera
 from orbslam_hgcn.features.distribute import distribute_quadtree, features_per_level, quadtree_keys
-from orbslam_hgcn.features.orb import ORBExtractor, circular_patch_offsets, ic_angles, patch_moment_weights
+from orbslam_hgcn.features.orb import ORBExtractor, circular_patch_offsets, ic_angles
 from orbslam_hgcn.features.pyramid import build_pyramid
+from orbslam_hgcn.features.rbrief import opencv_rbrief
 
 TUM_FRAME = "rgb/1341847980.722988.png"
 
@@ -216,7 +217,7 @@ def test_orientation_equals_loop_reference(tum_sample):
             m10 += a * val
             m01 += b * val
         ref.append(np.degrees(np.arctan2(m01, m10)) % 360.0)
-    got = ic_angles(img, x, y, patch_moment_weights(15))
+    got = ic_angles(img, x, y, 15)
     diff = np.abs((got - np.array(ref) + 180.0) % 360.0 - 180.0)
     assert diff.max() < 1e-3
     # The patch is ORB-SLAM's symmetric disc of radius 15.
@@ -232,3 +233,37 @@ def test_euroc_keypoints_are_undistorted(euroc_sample, extractor):
     assert abs(len(kps) - 1000) <= 50
     np.testing.assert_allclose(kps.uv, cam.undistort_points(kps.uv_raw), atol=1e-9)
     assert np.max(np.linalg.norm(kps.uv - kps.uv_raw, axis=1)) > 5.0
+
+
+def test_compiled_rbrief_equals_opencv_at_any_orientation(tum_sample):
+    # The test pattern is read off OpenCV, and the compiled descriptor must then equal
+    # cv2.ORB.compute bit for bit: random keypoints, random orientations, real images.
+    compiled = opencv_rbrief(31, 19)
+    assert compiled is not None, "the extractor would fall back to cv2.ORB.compute"
+    pattern = np.stack([compiled.px, compiled.py], axis=1)
+    assert pattern.shape == (512, 2)
+    assert np.all(np.abs(pattern) <= 15) and len({tuple(p) for p in pattern.reshape(256, 4).tolist()}) == 256
+    orb = cv2.ORB_create(nfeatures=1000, nlevels=1, edgeThreshold=19, patchSize=31)
+    rng = np.random.default_rng(7)
+    for path in sorted((tum_sample / "rgb").glob("*.png"))[:6]:
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        x = rng.integers(19, img.shape[1] - 19, 400)
+        y = rng.integers(19, img.shape[0] - 19, 400)
+        angle = rng.uniform(0.0, 360.0, 400).astype(np.float32)
+        kps = [cv2.KeyPoint(float(u), float(v), 31.0, float(a)) for u, v, a in zip(x, y, angle)]
+        out, want = orb.compute(img, kps)
+        assert len(out) == 400
+        np.testing.assert_array_equal(compiled.describe(img, x, y, angle), want)
+    with pytest.raises(ValueError, match="border"):
+        compiled.describe(img, np.array([compiled.reach - 1]), np.array([100]), np.zeros(1, np.float32))
+
+
+def test_extractor_falls_back_to_opencv_descriptors(tum_sample, extractor, monkeypatch):
+    # Where the pattern cannot be read off OpenCV, cv2.ORB.compute describes, with the same result.
+    monkeypatch.setattr("orbslam_hgcn.features.orb.opencv_rbrief", lambda *args: None)
+    fallback = ORBExtractor()
+    assert fallback._rbrief is None and extractor._rbrief is not None
+    img = _tum_image(tum_sample)
+    a, b = fallback.extract(img), extractor.extract(img)
+    for name in ("uv_raw", "octave", "angle", "desc"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))

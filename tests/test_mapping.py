@@ -263,10 +263,14 @@ def test_map_invariants_after_a_run(synth_run):
 
 def test_compiled_kernels_have_one_signature_after_a_run(synth_run):
     """System() compiled (or loaded) the kernels with the argument types of a real run, so
-    the run (pose-only optimisation, projection search, fusion) compiled nothing more."""
+    the run (pose-only optimisation, projection search, fusion, ORB description) compiled
+    nothing more."""
     from orbslam_hgcn.backend.pose_only import _optimize
     from orbslam_hgcn.features.projection_search import _best_two_in_windows
+    from orbslam_hgcn.features.rbrief import ic_moments, rbrief
 
     assert synth_run.mapper.timings["fuse"], "the run fused points"
     assert len(_optimize.signatures) == 1
     assert len(_best_two_in_windows.signatures) == 1
+    assert len(ic_moments.signatures) == 1
+    assert len(rbrief.signatures) == 1

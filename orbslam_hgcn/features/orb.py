@@ -16,8 +16,10 @@ Choices of this implementation:
   does per cell (a corner's FAST score does not depend on the threshold, so the high-pass
   corners are exactly those of ORB-SLAM's cells); the quadtree is evaluated on whole
   arrays (see :mod:`orbslam_hgcn.features.distribute`);
-* descriptors come from ``cv2.ORB.compute`` on each level image (which blurs it with a
-  7x7, sigma 2 Gaussian, as ORB-SLAM does) with the orientation computed here.
+* orientation and descriptors are compiled loops (:mod:`orbslam_hgcn.features.rbrief`):
+  the moments on the level image, the rBRIEF tests on the level image blurred with a 7x7,
+  sigma 2 Gaussian as ORB-SLAM does; they equal ``cv2.ORB.compute``'s bit for bit, which
+  describes instead where they cannot be made to;
 * levels are searched, and then described, on ``ORBConfig.threads`` threads (OpenCV
   releases the GIL); the keypoints are the same for any number of threads.
 """
@@ -32,12 +34,12 @@ from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 
 from orbslam_hgcn.config import ORBConfig
 from orbslam_hgcn.features.distribute import distribute_quadtree, features_per_level
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.features.pyramid import PyramidMaps, build_pyramid, pyramid_maps
+from orbslam_hgcn.features.rbrief import ic_moments, opencv_rbrief
 from orbslam_hgcn.geometry.camera import PinholeCamera
 
 log = logging.getLogger(__name__)
@@ -70,38 +72,28 @@ def circular_patch_offsets(half_patch: int) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(du, dtype=np.int64), np.asarray(dv, dtype=np.int64)
 
 
-def patch_moment_weights(half_patch: int) -> np.ndarray:
-    """(P*P, 2) float32 weights (u, v) over the square patch, zero outside ORB-SLAM's circle.
-
-    P = 2 * half_patch + 1; a flattened patch times these weights gives the moments
-    (m10, m01) of the circular patch.
-    """
+@functools.lru_cache(maxsize=4)
+def _patch_rows(half_patch: int) -> np.ndarray:
+    """(half_patch + 1,) int64 half-width ``umax[v]`` of row v of the circular patch."""
     du, dv = circular_patch_offsets(half_patch)
-    p = 2 * half_patch + 1
-    w = np.zeros((p, p, 2), dtype=np.float32)
-    w[dv + half_patch, du + half_patch, 0] = du
-    w[dv + half_patch, du + half_patch, 1] = dv
-    return w.reshape(p * p, 2)
+    return np.array([du[dv == v].max() for v in range(half_patch + 1)], dtype=np.int64)
 
 
-def ic_angles(image: np.ndarray, x: np.ndarray, y: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def ic_angles(image: np.ndarray, x: np.ndarray, y: np.ndarray, half_patch: int) -> np.ndarray:
     """(N,) float32 intensity-centroid orientation in degrees [0, 360) (Rublee et al. 2011).
 
-    image: (H, W) uint8 level image; x, y: (N,) int pixel positions at least the patch
-    radius away from the border; weights: (P*P, 2) from :func:`patch_moment_weights`.
-    ORB-SLAM's IC_Angle: ``atan2(m01, m10)`` on the unblurred level image.
+    image: (H, W) uint8 level image; x, y: (N,) int pixel positions at least ``half_patch``
+    away from the border. ORB-SLAM's IC_Angle: ``atan2(m01, m10)`` of the moments of the
+    circular patch (:func:`circular_patch_offsets`) on the unblurred level image.
     """
     if len(x) == 0:
         return np.zeros(0, dtype=np.float32)
-    p = int(round(np.sqrt(weights.shape[0])))
-    half = p // 2
-    image = np.ascontiguousarray(image)
+    x = np.asarray(x, np.int64)
+    y = np.asarray(y, np.int64)
     h, w = image.shape
-    # Every p x p window of the image as a (h-p+1, w-p+1, p, p) view (no copy).
-    s0, s1 = image.strides
-    windows = as_strided(image, (h - p + 1, w - p + 1, p, p), (s0, s1, s0, s1), writeable=False)
-    patches = windows[np.asarray(y, np.intp) - half, np.asarray(x, np.intp) - half]
-    moments = patches.reshape(len(x), p * p).astype(np.float32) @ weights  # (N, 2): m10, m01
+    if x.min() < half_patch or y.min() < half_patch or x.max() >= w - half_patch or y.max() >= h - half_patch:
+        raise ValueError(f"keypoints closer than {half_patch} px to the image border have no orientation")
+    moments = ic_moments(np.ascontiguousarray(image), x, y, _patch_rows(half_patch))  # (N, 2): m10, m01
     ang = np.degrees(np.arctan2(moments[:, 1], moments[:, 0]))
     return np.mod(ang, 360.0).astype(np.float32)
 
@@ -120,7 +112,9 @@ class ORBExtractor:
         self.n_per_level = features_per_level(c.n_features, c.scale_factor, c.n_levels)
         self._fast_hi = cv2.FastFeatureDetector_create(int(c.ini_th_fast), True)
         self._fast_lo = cv2.FastFeatureDetector_create(int(c.min_th_fast), True)
-        # One-level ORB used only to compute descriptors of given keypoints on a level image.
+        # Descriptors of given keypoints on a level image: compiled (equal to OpenCV's, see
+        # orbslam_hgcn.features.rbrief), or by a one-level cv2.ORB where they cannot be.
+        self._rbrief = opencv_rbrief(c.patch_size, c.edge_threshold)
         self._orb = cv2.ORB_create(
             nfeatures=c.n_features,
             scaleFactor=c.scale_factor,
@@ -128,7 +122,6 @@ class ORBExtractor:
             edgeThreshold=c.edge_threshold,
             patchSize=c.patch_size,
         )
-        self._patch_weights = patch_moment_weights(c.patch_size // 2)
         # Pyramid levels are searched and described on `threads` threads (1: in the caller).
         self._pool = ThreadPoolExecutor(c.threads, thread_name_prefix="orb-level") if c.threads > 1 else None
 
@@ -194,7 +187,14 @@ class ORBExtractor:
     def _describe(self, img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Orientation (N,) float32 degrees and rBRIEF descriptors (N, 32) uint8 of the
         keypoints (x, y) (N,) of one level image."""
-        angle = ic_angles(img, x, y, self._patch_weights)
+        angle = ic_angles(img, x, y, self.config.patch_size // 2)
+        if self._rbrief is not None:
+            return angle, self._rbrief.describe(img, x, y, angle)
+        return angle, self._describe_opencv(img, x, y, angle)
+
+    def _describe_opencv(self, img: np.ndarray, x: np.ndarray, y: np.ndarray, angle: np.ndarray) -> np.ndarray:
+        """rBRIEF descriptors (N, 32) uint8 of keypoints (x, y) (N,) with orientation
+        ``angle`` (N,) by ``cv2.ORB.compute``."""
         size = float(self.config.patch_size)
         kps = [
             cv2.KeyPoint(float(u), float(v), size, float(t)) for u, v, t in zip(x.tolist(), y.tolist(), angle.tolist())
@@ -202,7 +202,7 @@ class ORBExtractor:
         out, d = self._orb.compute(img, kps)
         if d is None or len(out) != len(x):
             raise RuntimeError("cv2.ORB.compute dropped keypoints that lie inside the edge threshold")
-        return angle, d
+        return d
 
     def extract(self, image: np.ndarray, camera: PinholeCamera | None = None) -> KeypointSet:
         """ORB keypoints and descriptors of one image.

@@ -38,6 +38,10 @@ class Extractors:
         cv2.setNumThreads(1)
         self.extractors = {name: ORBExtractor(c) for name, c in configs.items()}
         self.camera = camera
+        # Load the compiled kernels of the extractor now rather than inside the first frame.
+        noise = np.random.default_rng(0).integers(0, 256, (120, 160), dtype=np.uint8)
+        for extractor in list(self.extractors.values())[:1]:
+            extractor.extract(noise)
 
     def extract(self, name: str, image: np.ndarray) -> tuple[KeypointSet, float]:
         """Keypoints of a (H, W) uint8 image by extractor ``name``, and the time it took (ms)."""
