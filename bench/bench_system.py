@@ -24,7 +24,8 @@ alignment; peak RSS of the process and of its children (the BA and extraction pr
 memory from runs without it). ``--profile`` runs the tracking thread under cProfile and
 prints where its time goes. ``--rate HZ`` hands frames out no faster than a camera of that
 rate would, and also prints the latency from each frame's due time (which grows when the
-system falls behind the camera). ``--config YAML`` overrides stage sections (``threads``,
+system falls behind the camera), the frames/s from the first frame's arrival to the last
+pose, and the share of frames tracked within two frame periods of their due time. ``--config YAML`` overrides stage sections (``threads``,
 ``local_mapping``, ...).
 
 Usage::
@@ -115,6 +116,19 @@ def _from_arrival(seq: ReaderSequence, system) -> np.ndarray:
     return np.maximum(started - due, 0.0) * 1000.0 + np.asarray(system.timings["frame"])
 
 
+def _paced(seq: ReaderSequence, system, from_arrival: np.ndarray) -> dict:
+    """How a paced run kept up with its camera: frames/s from the first frame's arrival to
+    the last frame's pose (the run's wall time also holds the start-up and the final
+    drain), the share of frames tracked within two frame periods of their due time, and
+    how late the last frame was."""
+    end = system.frame_started[-1] + system.timings["frame"][-1] / 1000.0
+    return {
+        "fps_camera_span": len(from_arrival) / (end - seq._t0),
+        "within_two_periods": float(np.mean(from_arrival <= 2000.0 / seq.rate)),
+        "last_lag_ms": float(from_arrival[-1]),
+    }
+
+
 def _summary(v) -> dict:
     v = np.asarray(v, dtype=np.float64)
     if len(v) == 0:
@@ -159,6 +173,8 @@ def run_one(
     stats = system.stats()
     frame = np.asarray(system.timings["frame"])
     opt = np.asarray(system.frame_optimising, dtype=bool)
+    # Only when every frame was timed (frames skipped while lost get no latency).
+    arrival = _from_arrival(seq, system) if rate > 0 and len(system.frame_started) == summary.frames else None
     mt = system.mapper.timings
     out = {
         "mode": mode,
@@ -174,10 +190,8 @@ def run_one(
         "decode_ms": _summary(seq.decode_ms),
         "reader_wait_ms_total": seq.waited_ms,
         "latency_all": _summary(frame),
-        # Only when every frame was timed (frames skipped while lost get no latency).
-        "latency_from_arrival": (
-            _summary(_from_arrival(seq, system)) if rate > 0 and len(system.frame_started) == summary.frames else None
-        ),
+        "latency_from_arrival": _summary(arrival) if arrival is not None else None,
+        "paced": _paced(seq, system, arrival) if arrival is not None else None,
         "latency_optimising": _summary(frame[opt]),
         "latency_not_optimising": _summary(frame[~opt]),
         "extraction": _summary(system.timings["extraction"]),
@@ -218,6 +232,11 @@ def report(r: dict) -> None:
     print(f"tracking latency ms/frame, all:        {_fmt(r['latency_all'])}")
     if r.get("latency_from_arrival"):
         print(f"  from the frame's due time:           {_fmt(r['latency_from_arrival'])}")
+    if r.get("paced"):
+        p = r["paced"]
+        print(f"  against the camera: {p['fps_camera_span']:.2f} frames/s from the first frame's arrival to the last "
+              f"pose; {100 * p['within_two_periods']:.1f}% of frames tracked within two frame periods of their "
+              f"due time; the last one {p['last_lag_ms']:.0f} ms after it")
     print(f"  while a BA / pose graph was solved:  {_fmt(r['latency_optimising'])}")
     print(f"  otherwise:                           {_fmt(r['latency_not_optimising'])}")
     print(f"  extraction:                          {_fmt(r['extraction'])}")

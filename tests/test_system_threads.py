@@ -244,6 +244,9 @@ def test_extraction_process_gives_the_direct_keypoints(tum_sample):
     configs = {"normal": ORBConfig(), "init": ORBConfig(n_features=2000)}
     proc = ExtractionProcess(configs, cam)
     try:
+        assert not proc.alive
+        proc.start()  # returns once the child has built its extractors
+        assert proc.alive
         for name, cfg in configs.items():
             kps, ms = proc.extract(name, img)
             direct = ORBExtractor(cfg).extract(img, cam)

@@ -53,11 +53,16 @@ class Extractors:
 class ExtractionProcess:
     """Extract with the extractors ``configs`` ({name: ORBConfig}) in a child process.
 
-    The process starts on the first request and lives until :meth:`close`.
+    The process starts on :meth:`start` or the first request and lives until :meth:`close`.
     """
 
     def __init__(self, configs: dict[str, ORBConfig], camera: PinholeCamera) -> None:
         self._child = ChildProcess("extraction", Extractors, (dict(configs), camera), ExtractionError)
+
+    def start(self) -> None:
+        """Start the process and wait until its extractors are built and their kernels
+        loaded (about a second), so that this is not spent inside the first frame."""
+        self._child.call("ping")
 
     def extract(self, name: str, image: np.ndarray) -> tuple[KeypointSet, float]:
         """As :meth:`Extractors.extract`, in the child process. Raises ExtractionError."""

@@ -413,6 +413,7 @@ class System:
                 self._extraction = ExtractionProcess(
                     {name: e.config for name, e in self._extractor_names.items()}, self.camera
                 )
+                self._extraction.start()  # before the reader takes the first frame
             prefetch = _Prefetch(self, sequence, n)
         try:
             for i in range(n):
