@@ -128,6 +128,54 @@ def test_add_observation_refuses_conflicting_links():
     assert check_invariants(m) == []
 
 
+def test_add_observations_equals_one_by_one_and_stops_at_a_conflict():
+    # A keyframe's links added in one call: the same links, shared counts and the same
+    # order of neighbours (ties in covisibility keep it) as one add_observation per link.
+    rng = np.random.default_rng(5)
+    ref, truth = _build(rng)
+    batch = Map()
+    for k in range(len(ref.keyframes())):
+        batch.add_keyframe(_frame(k, np.random.default_rng(k)))
+    for pid in sorted(truth):
+        assert batch.add_map_point(ref.point(pid).position, next(iter(truth[pid]))) == pid
+    by_kf: dict[int, list[tuple[int, int]]] = {}
+    for pid, obs in truth.items():
+        for k, idx in obs.items():
+            by_kf.setdefault(k, []).append((pid, idx))
+    one = Map()
+    for k in range(len(ref.keyframes())):
+        one.add_keyframe(_frame(k, np.random.default_rng(k)))
+    for pid in sorted(truth):
+        one.add_map_point(ref.point(pid).position, next(iter(truth[pid])))
+    for k in sorted(by_kf):
+        pids, idxs = np.array(by_kf[k]).T
+        assert batch.add_observations(k, pids, idxs) == len(pids)
+        assert batch.add_observations(k, pids[:3], idxs[:3]) == 0  # present already: skipped
+        for p, i in zip(pids, idxs):
+            one.add_observation(k, int(p), int(i))
+    for k in by_kf:
+        assert list(batch.keyframe(k).shared.items()) == list(one.keyframe(k).shared.items())
+        np.testing.assert_array_equal(batch.keyframe(k).point_ids, one.keyframe(k).point_ids)
+    assert check_invariants(batch) == []
+    # Keyframes observing a set of points, counted.
+    pids = np.array(sorted(truth)[:40])
+    want = Counter(k for p in pids for k in truth[int(p)])
+    assert batch.observer_counts(pids) == want
+    # A conflicting pair raises; the pairs before it are linked, with their shared counts.
+    k = 0
+    free = [i for i in range(N_FEAT) if batch.keyframe(k).point_ids[i] < 0]
+    new = [batch.add_map_point([0.0, 0.0, 5.0], 1) for _ in range(3)]
+    for p in new:
+        batch.add_observation(1, p, int(np.flatnonzero(batch.keyframe(1).point_ids < 0)[0]))
+    taken = int(np.flatnonzero(batch.keyframe(k).point_ids >= 0)[0])
+    before = batch.covisibility_weight(k, 1)
+    with pytest.raises(ValueError, match="already holds"):
+        batch.add_observations(k, np.array(new), np.array([free[0], free[1], taken]))
+    assert batch.covisibility_weight(k, 1) == before + 2
+    assert batch.point(new[2]).observations.keys() == {1}
+    assert check_invariants(batch) == []
+
+
 def test_best_neighbour_kept_when_none_reaches_threshold():
     rng = np.random.default_rng(3)
     m = Map()

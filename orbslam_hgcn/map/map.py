@@ -14,6 +14,7 @@ sequence of calls atomic.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 from collections import Counter
@@ -95,9 +96,38 @@ class Map:
             return True
 
     def add_observations(self, kf_id: int, pids: np.ndarray, idxs: np.ndarray) -> int:
-        """Add many links of one keyframe; existing identical links are skipped. Returns count added."""
+        """Add many links of one keyframe; existing identical links are skipped. Returns count
+        added. As :meth:`add_observation` for each pair in order (a conflicting pair raises
+        ValueError after the pairs before it are added), with the shared-point counts
+        updated once per other keyframe."""
         with self.lock:
-            return sum(self.add_observation(kf_id, int(p), int(i)) for p, i in zip(pids, idxs))
+            kf = self._good_kf(kf_id)
+            observers: list[tuple[int, ...]] = []  # keyframes observing each added point before the link
+            try:
+                for p, i in zip(np.asarray(pids).tolist(), np.asarray(idxs).tolist()):
+                    self._good_point(p)
+                    obs = self._pts.obs[p]
+                    if kf_id in obs:
+                        if obs[kf_id] == i:
+                            continue
+                        raise ValueError(f"point {p} is already observed by keyframe {kf_id} at slot {obs[kf_id]}")
+                    cur = int(kf._point_ids[i])
+                    if cur >= 0:
+                        raise ValueError(f"slot {i} of keyframe {kf_id} already holds point {cur}")
+                    observers.append(tuple(obs))
+                    obs[kf_id] = int(i)
+                    kf._point_ids[i] = p
+            finally:
+                # One count per other keyframe, in the order add_observation would have met them.
+                self._add_shared(kf, Counter(itertools.chain.from_iterable(observers)))
+            return len(observers)
+
+    def observer_counts(self, pids: np.ndarray) -> Counter[int]:
+        """{keyframe id: how many of the points ``pids`` it observes}, keyframes in the order
+        the points' observations first name them."""
+        with self.lock:
+            obs = self._pts.obs
+            return Counter(itertools.chain.from_iterable(obs[p] for p in np.asarray(pids).tolist()))
 
     def erase_observation(self, kf_id: int, pid: int) -> None:
         """Unlink point ``pid`` from keyframe ``kf_id`` (both ends); a point left with too few
@@ -124,6 +154,19 @@ class Map:
         self._bump_shared(kf, obs, -1)
         if self._pts.ref_kf[pid] == kf_id:
             self._pts.ref_kf[pid] = next(iter(obs)) if obs else -1
+
+    def _add_shared(self, kf: KeyFrame, counts: Counter[int]) -> None:
+        """Add ``counts[other]`` (> 0) shared points between ``kf`` and each other keyframe,
+        both ways; their covisibility orders are recomputed on next use."""
+        if not counts:
+            return
+        shared, kf_id = kf.shared, kf.id
+        for other, n in counts.items():
+            o = self._kfs[other]
+            shared[other] = shared.get(other, 0) + n
+            o.shared[kf_id] = o.shared.get(kf_id, 0) + n
+            o._invalidate_covisibility()
+        kf._invalidate_covisibility()
 
     def _bump_shared(self, kf: KeyFrame, others: Iterable[int], delta: int) -> None:
         """Add ``delta`` to the shared-point count between ``kf`` and each keyframe id in

@@ -17,8 +17,6 @@ SearchLocalPoints of ORB-SLAM2):
 from __future__ import annotations
 
 import logging
-from collections import Counter
-
 import numpy as np
 
 from orbslam_hgcn.config import TrackingConfig
@@ -44,10 +42,7 @@ class LocalMap:
         """Select local keyframes and points for ``frame`` (its matches must be fresh);
         returns the reference keyframe id (-1 when the frame has no match)."""
         m, cfg = self.map, self.config
-        pids = frame.point_ids[frame.point_ids >= 0]
-        counter: Counter[int] = Counter()
-        for pid in pids.tolist():
-            counter.update(m.point(pid).observations.keys())
+        counter = m.observer_counts(frame.point_ids[frame.point_ids >= 0])
         if not counter:
             self.kf_ids = np.zeros(0, dtype=np.int64)
             self.point_ids = np.zeros(0, dtype=np.int64)
