@@ -110,6 +110,8 @@ def test_erase_observation_unlinks_both_ends_and_drops_weak_points():
     # Left with 2 observations after the next erase: discarded as in ORB-SLAM (nObs <= 2).
     m.erase_observation(kf_b, pid)
     assert m.point(pid).bad and m.point(pid).n_obs == 0
+    others = [p for p in truth if p != pid][:5]
+    np.testing.assert_array_equal(m.bad_points(np.array([pid, *others])), [True] + [False] * len(others))
     assert not np.isin(pid, np.concatenate([m.keyframe(k).point_ids for k in truth[pid]]))
     assert check_invariants(m) == []
 

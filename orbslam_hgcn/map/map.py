@@ -270,6 +270,11 @@ class Map:
             s, ids = self._pts, np.asarray(pids, dtype=np.int64)
             return PointArrays(s.position[ids], s.normal[ids], s.min_dist[ids], s.max_dist[ids], s.desc[ids], s.bad[ids])
 
+    def bad_points(self, pids: np.ndarray) -> np.ndarray:
+        """(M,) bool copy: whether each point of ``pids`` has been discarded."""
+        with self.lock:
+            return self._pts.bad[np.asarray(pids, dtype=np.int64)]
+
     def n_observations(self, pids: np.ndarray) -> np.ndarray:
         """(M,) int64 number of keyframes observing each point."""
         with self.lock:

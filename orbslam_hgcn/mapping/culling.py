@@ -52,7 +52,7 @@ def cull_recent_points(
     recent = np.asarray(recent, dtype=np.int64)
     if len(recent) == 0:
         return recent, 0
-    bad = m.point_arrays(recent).bad
+    bad = m.bad_points(recent)
     recent = recent[~bad]
     views = [m.point(int(p)) for p in recent]
     found_ratio = np.array([v.found_ratio for v in views])

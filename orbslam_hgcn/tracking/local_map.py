@@ -86,7 +86,7 @@ class LocalMap:
         mask = np.zeros(int(ids.max()) + 1, dtype=bool)
         mask[ids] = True
         ids = np.flatnonzero(mask).astype(np.int64)
-        return ids[~m.point_arrays(ids).bad]
+        return ids[~m.bad_points(ids)]
 
     def search(self, frame: Frame, grid: FeatureGrid, window: float) -> int:
         """Search the local points not yet matched in ``frame`` (ORB-SLAM2
