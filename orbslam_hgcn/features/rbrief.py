@@ -11,10 +11,10 @@ The 256 test pairs of OpenCV's 31-pixel patch are the learned pattern of Rublee 
 are read off the installed OpenCV by :func:`probe_pattern`, which describes keypoints on
 step images and decodes each bit's two sample points from the steps at which it flips.
 :func:`opencv_rbrief` then checks the compiled descriptor against ``cv2.ORB.compute`` on a
-noise image with random orientations, with each blur OpenCV's ORB has used (OpenCV 4.x
-blurs with the fixed-point ``GaussianBlur``, 5.x with a separable float kernel), and keeps
-the blur that matches bit for bit; when none does, the extractor stays with
-``cv2.ORB.compute``.
+noise image with random orientations, with each candidate blur (with OpenCV 5.0, ORB's
+smoothing equals a separable float Gaussian and not the fixed-point ``cv2.GaussianBlur``,
+which differs by a grey level here and there), and keeps the blur that matches bit for
+bit; when none does, the extractor stays with ``cv2.ORB.compute``.
 """
 
 from __future__ import annotations
