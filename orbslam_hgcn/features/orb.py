@@ -151,21 +151,25 @@ class ORBExtractor:
         if w <= 2 * self.config.edge_threshold or h <= 2 * self.config.edge_threshold:
             return None
         # FAST skips 3 px at the window border, so corners lie edge_threshold inside.
-        found = [self._corners(self._fast_hi, img, lo, h - lo, lo, w - lo)]
-        cells = maps.cell_maps[level]
+        # Corners are looked up in the per-pixel tables by flat index (y * w + x).
+        cells = maps.cell_maps[level].ravel()
+        x, y, score = self._corners(self._fast_hi, img, lo, h - lo, lo, w - lo)
+        cell_of = cells.take(y * w + x)
+        found = [(x, y, score, cell_of)]
         first, last = maps.level_cells[level], maps.level_cells[level + 1]
         covered = np.zeros(last - first, dtype=bool)
-        covered[cells[found[0][1], found[0][0]] - first] = True
+        covered[cell_of - first] = True
         for cell in np.flatnonzero(~covered) + first:
             x0, x1, y0, y1 = maps.cell_boxes[cell].tolist()
             x, y, score = self._corners(
                 self._fast_lo, img, max(y0 - _FAST_MARGIN, lo), min(y1 + _FAST_MARGIN, h - lo),
                 max(x0 - _FAST_MARGIN, lo), min(x1 + _FAST_MARGIN, w - lo),
             )  # fmt: skip
-            mine = cells[y, x] == cell
-            found.append((x[mine], y[mine], score[mine]))
-        x, y, score = (np.concatenate(col) for col in zip(*found))
-        return x, y, np.full(len(x), level, np.int64), score, cells[y, x], maps.key_maps[level][y, x]
+            mine = cells.take(y * w + x) == cell
+            found.append((x[mine], y[mine], score[mine], np.full(int(mine.sum()), cell, cells.dtype)))
+        x, y, score, cell_of = (np.concatenate(col) for col in zip(*found))
+        key = maps.key_maps[level].ravel().take(y * w + x)
+        return x, y, np.full(len(x), level, np.int64), score, cell_of, key
 
     def _map(self, fn, levels: list[np.ndarray]) -> list:
         """[fn(level, image) for each level], on the extractor's threads when it has them
