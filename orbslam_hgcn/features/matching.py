@@ -34,6 +34,7 @@ from orbslam_hgcn.features.projection_search import (
     fuse_candidates,
     predict_octave,
     radius_by_viewing_cos,
+    scan_windows,
     search_by_projection,
 )
 
@@ -81,11 +82,14 @@ def search_for_initialization(
     match = np.full(n1, -1, dtype=np.int64)
     q_idx = np.flatnonzero(kps1.octave == 0)
     if len(q_idx) and len(kps2):
-        q, f = grid2.candidate_pairs(prev[q_idx, 0], prev[q_idx, 1], window, 0, 0)
-        d = hamming_pairs(kps1.desc[q_idx[q]], kps2.desc[f])
-        bp, bd, _, sd = best_two_per_group(q, d, len(q_idx))
-        ok = (bp >= 0) & (bd <= TH_LOW) & (bd < ratio * sd)
-        match[q_idx[ok]] = f[bp[ok]]
+        m = len(q_idx)
+        level = np.zeros(m, dtype=np.int64)
+        best, bd, _, sd = scan_windows(
+            kps2, grid2, prev[q_idx, 0], prev[q_idx, 1], np.full(m, float(window)), level, level,
+            kps1.desc[q_idx], np.ones(len(kps2), dtype=bool), 0.0,
+        )  # fmt: skip
+        ok = (best >= 0) & (bd <= TH_LOW) & (bd < ratio * sd)
+        match[q_idx[ok]] = best[ok]
         dist = np.full(n1, 1 << 30, dtype=np.int64)
         dist[q_idx[ok]] = bd[ok]
         match = resolve_conflicts(match, dist)

@@ -12,6 +12,9 @@ per point) is one compiled loop (:func:`_best_two_in_windows`, see
 for 400 points in a window of 4 px per level. It visits candidates in the order of
 :meth:`FeatureGrid.candidate_pairs` and keeps the earliest on ties, as
 :func:`~orbslam_hgcn.features.hamming.best_two_per_group` does, so the matches are the same.
+The initialiser's search (:func:`~orbslam_hgcn.features.matching.search_for_initialization`,
+2000 features in windows of 200 px) uses the same loop (:func:`scan_windows`): 1.7 against
+16.9 ms per call.
 """
 
 from __future__ import annotations
@@ -119,9 +122,12 @@ def _best_two_in_windows(
     return best_f, best_d, second_f, second_d
 
 
-def _scan(keypoints: KeypointSet, grid: FeatureGrid, x, y, r, lo, hi, desc, available, chi2_gate: float):
-    """:func:`_best_two_in_windows` of queries (x, y, r, lo, hi: (M,); desc: (M, 32)) over
-    the keypoints of ``grid``; available: (N,) bool."""
+def scan_windows(keypoints: KeypointSet, grid: FeatureGrid, x, y, r, lo, hi, desc, available, chi2_gate: float):
+    """The two closest keypoints of ``grid`` (over ``keypoints``) to each query descriptor
+    inside its window (:func:`_best_two_in_windows`): x, y, r: (M,) float window centres
+    and half sides; lo, hi: (M,) int64 octave limits (-1: none); desc: (M, 32) uint8;
+    available: (N,) bool; chi2_gate: 0 for none. Returns (best, best distance, second,
+    second distance), each (M,) int64, -1 and 1 << 30 where absent."""
     return _best_two_in_windows(
         np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(y, dtype=np.float64),
         np.ascontiguousarray(r, dtype=np.float64), lo, hi, _words(desc), _words(keypoints.desc),
@@ -169,7 +175,7 @@ def search_by_projection(
     lo = np.maximum(octave + level_range[0], 0)
     hi = octave + level_range[1]
     avail = np.ones(len(keypoints), dtype=bool) if available is None else np.asarray(available, dtype=bool)
-    best, bd, second, sd = _scan(keypoints, grid, uv[:, 0], uv[:, 1], r, lo, hi, desc, avail, 0.0)
+    best, bd, second, sd = scan_windows(keypoints, grid, uv[:, 0], uv[:, 1], r, lo, hi, desc, avail, 0.0)
     ok = (best >= 0) & (bd <= max_dist)
     if ratio is not None:
         has2 = second >= 0
@@ -235,7 +241,7 @@ def fuse_candidates(
     lvl = predict_octave(np.asarray(max_distance)[cand], dist3[cand], sf, keypoints.n_levels)
     r = th * keypoints.scale_factors[lvl]
     everywhere = np.ones(len(keypoints), dtype=bool)
-    best, bd, _, _ = _scan(
+    best, bd, _, _ = scan_windows(
         keypoints, grid, uv[cand, 0], uv[cand, 1], r, lvl - 1, lvl, np.asarray(desc)[cand], everywhere, CHI2_MONO
     )
     good = (best >= 0) & (bd <= TH_LOW)
