@@ -18,7 +18,7 @@ import itertools
 import logging
 import threading
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Mapping
 from typing import NamedTuple
 
 import numpy as np
@@ -81,18 +81,10 @@ class Map:
         """
         with self.lock:
             kf = self._good_kf(kf_id)
-            self._good_point(pid)
-            obs = self._pts.obs[pid]
-            if kf_id in obs:
-                if obs[kf_id] == idx:
-                    return False
-                raise ValueError(f"point {pid} is already observed by keyframe {kf_id} at slot {obs[kf_id]}")
-            cur = int(kf._point_ids[idx])
-            if cur >= 0:
-                raise ValueError(f"slot {idx} of keyframe {kf_id} already holds point {cur}")
-            self._bump_shared(kf, obs, +1)
-            obs[kf_id] = int(idx)
-            kf._point_ids[idx] = pid
+            before = self._link(kf, pid, idx)
+            if before is None:
+                return False
+            self._bump_shared(kf, dict.fromkeys(before, 1))
             return True
 
     def add_observations(self, kf_id: int, pids: np.ndarray, idxs: np.ndarray) -> int:
@@ -105,22 +97,31 @@ class Map:
             observers: list[tuple[int, ...]] = []  # keyframes observing each added point before the link
             try:
                 for p, i in zip(np.asarray(pids).tolist(), np.asarray(idxs).tolist()):
-                    self._good_point(p)
-                    obs = self._pts.obs[p]
-                    if kf_id in obs:
-                        if obs[kf_id] == i:
-                            continue
-                        raise ValueError(f"point {p} is already observed by keyframe {kf_id} at slot {obs[kf_id]}")
-                    cur = int(kf._point_ids[i])
-                    if cur >= 0:
-                        raise ValueError(f"slot {i} of keyframe {kf_id} already holds point {cur}")
-                    observers.append(tuple(obs))
-                    obs[kf_id] = int(i)
-                    kf._point_ids[i] = p
+                    before = self._link(kf, p, i)
+                    if before is not None:
+                        observers.append(before)
             finally:
                 # One count per other keyframe, in the order add_observation would have met them.
-                self._add_shared(kf, Counter(itertools.chain.from_iterable(observers)))
+                self._bump_shared(kf, Counter(itertools.chain.from_iterable(observers)))
             return len(observers)
+
+    def _link(self, kf: KeyFrame, pid: int, idx: int) -> tuple[int, ...] | None:
+        """Link slot ``idx`` of ``kf`` with point ``pid`` without touching the shared-point
+        counts. Returns the keyframes that observed the point before, or None when exactly
+        this link exists already; raises ValueError on a conflicting link."""
+        self._good_point(pid)
+        obs = self._pts.obs[pid]
+        if kf.id in obs:
+            if obs[kf.id] == idx:
+                return None
+            raise ValueError(f"point {pid} is already observed by keyframe {kf.id} at slot {obs[kf.id]}")
+        cur = int(kf._point_ids[idx])
+        if cur >= 0:
+            raise ValueError(f"slot {idx} of keyframe {kf.id} already holds point {cur}")
+        before = tuple(obs)
+        obs[kf.id] = int(idx)
+        kf._point_ids[idx] = pid
+        return before
 
     def observer_counts(self, pids: np.ndarray) -> Counter[int]:
         """{keyframe id: how many of the points ``pids`` it observes}, keyframes in the order
@@ -151,32 +152,18 @@ class Map:
         idx = obs.pop(kf_id)
         kf = self._kfs[kf_id]
         kf._point_ids[idx] = -1
-        self._bump_shared(kf, obs, -1)
+        self._bump_shared(kf, dict.fromkeys(obs, -1))
         if self._pts.ref_kf[pid] == kf_id:
             self._pts.ref_kf[pid] = next(iter(obs)) if obs else -1
 
-    def _add_shared(self, kf: KeyFrame, counts: Counter[int]) -> None:
-        """Add ``counts[other]`` (> 0) shared points between ``kf`` and each other keyframe,
-        both ways; their covisibility orders are recomputed on next use."""
-        if not counts:
+    def _bump_shared(self, kf: KeyFrame, deltas: Mapping[int, int]) -> None:
+        """Add ``deltas[other]`` to the shared-point count between ``kf`` and each other
+        keyframe, both ways (a count reaching 0 drops the link); their covisibility orders
+        are recomputed on next use. This runs for every observation added or removed."""
+        if not deltas:
             return
         shared, kf_id = kf.shared, kf.id
-        for other, n in counts.items():
-            o = self._kfs[other]
-            shared[other] = shared.get(other, 0) + n
-            o.shared[kf_id] = o.shared.get(kf_id, 0) + n
-            o._invalidate_covisibility()
-        kf._invalidate_covisibility()
-
-    def _bump_shared(self, kf: KeyFrame, others: Iterable[int], delta: int) -> None:
-        """Add ``delta`` to the shared-point count between ``kf`` and each keyframe id in
-        ``others``, both ways (a count reaching 0 drops the link); their covisibility orders
-        are recomputed on next use. ``others`` is usually a point's observation dict: this
-        runs for every observation added or removed."""
-        if not others:
-            return
-        shared, kf_id = kf.shared, kf.id
-        for other in others:
+        for other, delta in deltas.items():
             o = self._kfs[other]
             n = shared.get(other, 0) + delta
             if n > 0:
@@ -351,7 +338,7 @@ class Map:
                 for other in set(counts) | set(kf.shared):
                     delta = counts.get(other, 0) - kf.shared.get(other, 0)
                     if delta:
-                        self._bump_shared(kf, (other,), delta)
+                        self._bump_shared(kf, {other: delta})
             if kf.first_connection and kf.id != self.origin_id:
                 # The best covisible keyframe already in the tree (in ORB-SLAM's order of
                 # events every neighbour is older, hence in the tree; this also holds when
