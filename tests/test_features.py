@@ -142,6 +142,66 @@ def test_weak_corners_only_where_a_cell_has_no_strong_one(extractor):
     assert abs(len(kps) - 1000) <= 50 and np.any(kps.uv_raw[:, 0] > 400)
 
 
+def _opencv_cell_fast(img, level, maps, hi=20, lo_th=7, edge=19):
+    """ORB-SLAM's per-cell FAST with cv2.FAST: the level window (edge - 3 inside) at the
+    high threshold, then each cell without a corner on its own window (the cell plus 3 px)
+    at the low threshold, keeping the corners inside the cell."""
+    lo = edge - 3
+    h, w = img.shape
+
+    def fast(threshold, r0, r1, c0, c1):
+        if r1 - r0 <= 6 or c1 - c0 <= 6:
+            return []
+        kps = cv2.FastFeatureDetector_create(threshold, True).detect(img[r0:r1, c0:c1])
+        return [(int(k.pt[0]) + c0, int(k.pt[1]) + r0, k.response) for k in kps]
+
+    cells = maps.cell_maps[level]
+    found = [(x, y, r, cells[y, x]) for x, y, r in fast(hi, lo, h - lo, lo, w - lo)]
+    covered = {c for *_, c in found}
+    for cell in range(maps.level_cells[level], maps.level_cells[level + 1]):
+        if cell in covered:
+            continue
+        x0, x1, y0, y1 = maps.cell_boxes[cell].tolist()
+        for x, y, r in fast(lo_th, max(y0 - 3, lo), min(y1 + 3, h - lo), max(x0 - 3, lo), min(x1 + 3, w - lo)):
+            if cells[y, x] == cell:
+                found.append((x, y, r, cell))
+    return found
+
+
+@pytest.mark.parametrize("which", ["tum", "euroc", "blobs"])
+def test_compiled_fast_equals_opencv_on_orbslam_windows(which, tum_sample, euroc_sample, extractor):
+    # The compiled detector must find cv2.FAST's corners, scores and order on the same
+    # windows, on every level: a real TUM frame (many cells fall back to the low
+    # threshold), a EuRoC frame (752 px wide) and a synthetic image with both contrasts.
+    if which == "tum":
+        img = _tum_image(tum_sample)
+    elif which == "euroc":
+        img = cv2.imread(str(sorted((euroc_sample / "mav0" / "cam0" / "data").glob("*.png"))[40]), 0)
+    else:
+        rng = np.random.default_rng(5)
+        pattern = cv2.resize(rng.random((60, 80)).astype(np.float32), (640, 480), interpolation=cv2.INTER_CUBIC)
+        img = np.clip(np.where(np.arange(640)[None, :] < 320, 30 + 200 * pattern, 60 + 60 * pattern), 0, 255)
+        img = img.astype(np.uint8)
+    maps = extractor.maps(*img.shape)
+    weak = 0
+    for level, level_img in enumerate(build_pyramid(img, 1.2, 8)):
+        x, y, _, score, cell, _ = extractor._detect_level(level, level_img, maps)
+        ref = _opencv_cell_fast(level_img, level, maps)
+        assert len(ref) > 20
+        assert list(zip(x.tolist(), y.tolist(), score.tolist(), cell.tolist())) == [
+            (a, b, float(r), c) for a, b, r, c in ref
+        ]
+        weak += int((score < 20).sum())
+    assert weak > 50  # the low-threshold pass was exercised
+
+
+def test_extractor_rejects_fast_thresholds_outside_a_byte():
+    with pytest.raises(ValueError, match="FAST thresholds"):
+        ORBExtractor(ORBConfig(ini_th_fast=300))
+    with pytest.raises(ValueError, match="FAST thresholds"):
+        ORBExtractor(ORBConfig(min_th_fast=25, ini_th_fast=20))
+
+
 def _grid_stats(uv, width, height, gx=8, gy=6):
     cx = np.clip((uv[:, 0] * gx / width).astype(int), 0, gx - 1)
     cy = np.clip((uv[:, 1] * gy / height).astype(int), 0, gy - 1)

@@ -14,14 +14,16 @@ Choices of this implementation:
 * FAST runs once per level at the high threshold (20); only the cells where it found no
   corner are searched again at the low threshold (7), each on its own window, as ORB-SLAM
   does per cell (a corner's FAST score does not depend on the threshold, so the high-pass
-  corners are exactly those of ORB-SLAM's cells); the quadtree is evaluated on whole
-  arrays (see :mod:`orbslam_hgcn.features.distribute`);
+  corners are exactly those of ORB-SLAM's cells). Both passes are one compiled call per
+  level that finds the corners ``cv2.FAST`` finds on those windows
+  (:mod:`orbslam_hgcn.features.fast`); the quadtree is evaluated on whole arrays (see
+  :mod:`orbslam_hgcn.features.distribute`);
 * orientation and descriptors are compiled loops (:mod:`orbslam_hgcn.features.rbrief`):
   the moments on the level image, the rBRIEF tests on the level image blurred with a 7x7,
   sigma 2 Gaussian as ORB-SLAM does; they equal ``cv2.ORB.compute``'s bit for bit, which
   describes instead where they cannot be made to;
-* levels are searched, and then described, on ``ORBConfig.threads`` threads (OpenCV
-  releases the GIL); the keypoints are the same for any number of threads.
+* levels are searched, and then described, on ``ORBConfig.threads`` threads (the compiled
+  loops and OpenCV release the GIL); the keypoints are the same for any number of threads.
 """
 
 from __future__ import annotations
@@ -29,7 +31,6 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import operator
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
@@ -37,6 +38,7 @@ import numpy as np
 
 from orbslam_hgcn.config import ORBConfig
 from orbslam_hgcn.features.distribute import distribute_quadtree, features_per_level
+from orbslam_hgcn.features.fast import MARGIN, circle_offsets, detect_level
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.features.pyramid import PyramidMaps, build_pyramid, pyramid_maps
 from orbslam_hgcn.features.rbrief import ic_moments, opencv_rbrief
@@ -44,8 +46,6 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 
 log = logging.getLogger(__name__)
 
-_FAST_MARGIN = 3  # FAST needs a radius-3 circle: no corner within 3 px of its window border
-_RESPONSE = operator.attrgetter("response")
 
 
 def circular_patch_offsets(half_patch: int) -> tuple[np.ndarray, np.ndarray]:
@@ -110,8 +110,8 @@ class ORBExtractor:
             [float(np.float32(c.scale_factor**level)) for level in range(c.n_levels)], dtype=np.float64
         )
         self.n_per_level = features_per_level(c.n_features, c.scale_factor, c.n_levels)
-        self._fast_hi = cv2.FastFeatureDetector_create(int(c.ini_th_fast), True)
-        self._fast_lo = cv2.FastFeatureDetector_create(int(c.min_th_fast), True)
+        if not (0 <= c.min_th_fast <= c.ini_th_fast <= 255):
+            raise ValueError("ORBConfig needs FAST thresholds 0 <= min_th_fast <= ini_th_fast <= 255")
         # Descriptors of given keypoints on a level image: compiled (equal to OpenCV's, see
         # orbslam_hgcn.features.rbrief), or by a one-level cv2.ORB where they cannot be.
         self._rbrief = opencv_rbrief(c.patch_size, c.edge_threshold)
@@ -141,33 +141,18 @@ class ORBExtractor:
         return tuple(np.concatenate(col) for col in zip(*parts))
 
     def _detect_level(self, level: int, img: np.ndarray, maps: PyramidMaps) -> tuple[np.ndarray, ...] | None:
-        """The corners of one level (None when it is too small to hold any).
-
-        The level is searched at the high threshold; cells left without a corner are
-        searched again at the low threshold on their own window (the cell plus FAST's 3 px
-        margin)."""
-        lo = self.config.edge_threshold - _FAST_MARGIN
+        """The corners of one level (None when it is too small to hold any): the level is
+        searched at the high threshold, and the cells left without a corner again at the
+        low threshold on their own windows (:func:`~orbslam_hgcn.features.fast.detect_level`)."""
+        c = self.config
         h, w = img.shape
-        if w <= 2 * self.config.edge_threshold or h <= 2 * self.config.edge_threshold:
+        if w <= 2 * c.edge_threshold or h <= 2 * c.edge_threshold:
             return None
-        # FAST skips 3 px at the window border, so corners lie edge_threshold inside.
-        # Corners are looked up in the per-pixel tables by flat index (y * w + x).
-        cells = maps.cell_maps[level].ravel()
-        x, y, score = self._corners(self._fast_hi, img, lo, h - lo, lo, w - lo)
-        cell_of = cells.take(y * w + x)
-        found = [(x, y, score, cell_of)]
-        first, last = maps.level_cells[level], maps.level_cells[level + 1]
-        covered = np.zeros(last - first, dtype=bool)
-        covered[cell_of - first] = True
-        for cell in np.flatnonzero(~covered) + first:
-            x0, x1, y0, y1 = maps.cell_boxes[cell].tolist()
-            x, y, score = self._corners(
-                self._fast_lo, img, max(y0 - _FAST_MARGIN, lo), min(y1 + _FAST_MARGIN, h - lo),
-                max(x0 - _FAST_MARGIN, lo), min(x1 + _FAST_MARGIN, w - lo),
-            )  # fmt: skip
-            mine = cells.take(y * w + x) == cell
-            found.append((x[mine], y[mine], score[mine], np.full(int(mine.sum()), cell, cells.dtype)))
-        x, y, score, cell_of = (np.concatenate(col) for col in zip(*found))
+        first, last = int(maps.level_cells[level]), int(maps.level_cells[level + 1])
+        x, y, score, cell_of = detect_level(
+            np.ascontiguousarray(img), c.edge_threshold - MARGIN, int(c.ini_th_fast), int(c.min_th_fast),
+            maps.cell_maps[level], first, maps.cell_boxes[first:last], circle_offsets(w),
+        )  # fmt: skip
         key = maps.key_maps[level].ravel().take(y * w + x)
         return x, y, np.full(len(x), level, np.int64), score, cell_of, key
 
@@ -177,16 +162,6 @@ class ORBExtractor:
         if self._pool is None:
             return [fn(level, img) for level, img in enumerate(levels)]
         return list(self._pool.map(fn, range(len(levels)), levels))
-
-    @staticmethod
-    def _corners(fast: cv2.FastFeatureDetector, img: np.ndarray, r0: int, r1: int, c0: int, c1: int):
-        """(x, y, score) of the FAST corners of ``img[r0:r1, c0:c1]`` in level pixels."""
-        kps = fast.detect(img[r0:r1, c0:c1]) if r1 - r0 > 2 * _FAST_MARGIN and c1 - c0 > 2 * _FAST_MARGIN else ()
-        if not kps:
-            return np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0, np.float32)
-        pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.intp)
-        score = np.fromiter(map(_RESPONSE, kps), dtype=np.float32, count=len(kps))
-        return pts[:, 0] + c0, pts[:, 1] + r0, score
 
     def _describe(self, img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Orientation (N,) float32 degrees and rBRIEF descriptors (N, 32) uint8 of the

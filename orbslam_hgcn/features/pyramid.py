@@ -15,10 +15,9 @@ import cv2
 import numpy as np
 
 from orbslam_hgcn.features.distribute import cell_ids, quadtree_keys
+from orbslam_hgcn.features.fast import MARGIN
 
 log = logging.getLogger(__name__)
-
-_FAST_MARGIN = 3  # FAST needs a radius-3 circle: ORB-SLAM's detection area starts edge - 3 in
 
 
 def level_sizes(width: int, height: int, scale_factor: float, n_levels: int) -> list[tuple[int, int]]:
@@ -75,7 +74,7 @@ class PyramidMaps:
     ) -> PyramidMaps:
         """Evaluate the cell and key functions once for every pixel of every level."""
         sizes = level_sizes(width, height, scale_factor, n_levels)
-        lo = edge - _FAST_MARGIN
+        lo = edge - MARGIN  # ORB-SLAM's detection area starts edge - 3 in
         bounds = np.array([[lo, w - lo, lo, h - lo] for w, h in sizes], dtype=np.float64)
         cell_maps, key_maps = [], []
         for level, (w, h) in enumerate(sizes):
