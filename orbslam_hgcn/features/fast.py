@@ -21,7 +21,9 @@ the windows :class:`~orbslam_hgcn.features.orb.ORBExtractor` hands it:
 
 A pixel's score depends only on its 7x7 neighbourhood, so a corner found in a cell's
 window has the score it would have on the whole level; only the suppression differs at
-window borders, and it is done per window here as well.
+window borders, and it follows the windows here as well. The quick test and the scores
+run on the vector units (see :func:`detect_level`), no ``cv2.KeyPoint`` object is made,
+and no Python loop runs over the cells.
 """
 
 from __future__ import annotations
@@ -48,60 +50,91 @@ def detect_level(img, lo, hi_threshold, lo_threshold, cells, first_cell, boxes, 
     """ORB-SLAM's FAST corners of one (H, W) uint8 level image (C-contiguous).
 
     The window rows/cols [lo, H - lo) x [lo, W - lo) is searched at ``hi_threshold``; then
-    each cell of ``boxes`` ((C, 4) int64 x0, x1, y0, y1 of this level's cells, numbered
-    from ``first_cell`` in the (H, W) int32 map ``cells``) that holds none of its corners
-    is searched at ``lo_threshold`` in its own window. ``o``: (16,) int64 flat offsets of
-    the circle in this image (:func:`circle_offsets`). Returns (x, y, score, cell), each
-    (N,): the high-threshold corners row by row, then each searched cell's.
+    each cell that holds none of the kept corners is searched at ``lo_threshold`` as if on
+    its own window (the cell plus 3 px). ``cells``: (H, W) int32 cell of each pixel, -1
+    outside; ``boxes``: (C, 4) int64 x0, x1, y0, y1 (ends exclusive) of the level's cells,
+    numbered from ``first_cell``; ``o``: (16,) int64 flat offsets of the circle in this
+    image (:func:`circle_offsets`). Returns (x, y, score, cell), each (N,): the
+    high-threshold corners row by row, then those of each searched cell, cell by cell and
+    row by row within a cell.
 
-    One function with no compiled callees: numba re-optimises a callee inside each caller,
-    which made a layered version take half a minute to compile.
+    A cell's own window tests exactly the cell's pixels (those 3 px inside the level's
+    window), and its suppression sees only them: so the low-threshold pass runs over the
+    rows of the searched cells (neighbouring ones in a grid row together) and suppresses
+    a corner only by a neighbour of its own cell. It is one function with no compiled
+    callees: numba re-optimises a callee inside each caller, and a layered version took
+    half a minute to compile.
     """
     h, w = img.shape
+    lo = max(lo, 0)  # every read and write below stays inside the image
+    ta, tb, tc, td = lo + 3, h - lo - 3, lo + 3, w - lo - 3  # the tested area
     flat = img.ravel()
-    scores = np.zeros(h * w, np.uint8)  # a window's scores; 0 outside its tested area
-    corners = np.empty(h * w, np.int64)  # a window's corners (flat indices), row by row
+    cell_flat = cells.ravel()
+    scores = np.zeros(h * w, np.uint8)  # the pass's scores; 0 elsewhere
+    corners = np.empty(h * w, np.int64)  # the pass's corners (flat indices), row by row
     idx = np.empty(_BATCH + w, np.int64)  # candidates waiting to be scored
     cand = np.empty(w, np.bool_)
     D = np.empty((16, _BATCH + w), np.int16)
     M = np.empty((16, _BATCH + w), np.int16)
     N = np.empty((16, _BATCH + w), np.int16)
     best = np.empty((2, _BATCH + w), np.int16)
-    cap = h * w // 2 + 1  # kept corners are never 8-neighbours
-    out_x = np.empty(cap, np.int64)
-    out_y = np.empty(cap, np.int64)
-    out_s = np.empty(cap, np.uint8)
+    out_i = np.empty(h * w, np.int64)  # a pixel is kept at most once
+    out_s = np.empty(h * w, np.uint8)
     n_out = 0
-    covered = np.zeros(len(boxes), np.bool_)
-    for win in range(len(boxes) + 1):
-        # The window: the level at the high threshold, then each cell left without a corner.
-        if win == 0:
-            r0, r1, c0, c1, t, want = lo, h - lo, lo, w - lo, hi_threshold, -1
+    n_hi = 0
+    n_cells = len(boxes)
+    searched = np.zeros(n_cells, np.bool_)  # cells searched at the low threshold
+    seg = np.empty((h + n_cells * h, 3), np.int64)  # (row, first col, end col) to test
+    for pass_ in range(2):
+        if ta >= tb or tc >= td:
+            break
+        n_seg = 0
+        if pass_ == 0:
+            t = hi_threshold
+            for y in range(ta, tb):
+                seg[n_seg, 0], seg[n_seg, 1], seg[n_seg, 2] = y, tc, td
+                n_seg += 1
         else:
-            c = win - 1
-            if covered[c]:
-                continue
-            r0, r1 = max(boxes[c, 2] - 3, lo), min(boxes[c, 3] + 3, h - lo)
-            c0, c1 = max(boxes[c, 0] - 3, lo), min(boxes[c, 1] + 3, w - lo)
-            t, want = lo_threshold, first_cell + c
-        if r1 - r0 <= 6 or c1 - c0 <= 6:
-            continue
+            t = lo_threshold
+            searched[:] = True
+            for k in range(n_out):
+                c = cell_flat[out_i[k]] - first_cell
+                if 0 <= c < n_cells:
+                    searched[c] = False
+            n_hi = n_out
+            # Runs of searched cells side by side in a grid row, clipped to the tested area.
+            c = 0
+            while c < n_cells:
+                if not searched[c]:
+                    c += 1
+                    continue
+                x0, x1, y0, y1 = boxes[c, 0], boxes[c, 1], boxes[c, 2], boxes[c, 3]
+                c += 1
+                while (
+                    c < n_cells and searched[c] and boxes[c, 0] == x1 and boxes[c, 2] == y0 and boxes[c, 3] == y1
+                ):  # fmt: skip
+                    x1 = boxes[c, 1]
+                    c += 1
+                x0, x1 = max(x0, tc), min(x1, td)
+                if x0 < x1:
+                    for y in range(max(y0, ta), min(y1, tb)):
+                        seg[n_seg, 0], seg[n_seg, 1], seg[n_seg, 2] = y, x0, x1
+                        n_seg += 1
         t16 = np.int16(t)
-        ta, tb, tc, td = r0 + 3, r1 - 3, c0 + 3, c1 - 3  # the tested area
         n_idx = 0
         n_corners = 0
-        # 1. Scores of the tested pixels, a row at a time; the last pass only scores what
-        #    is left.
-        for y in range(ta, tb + 1):
-            if y < tb:
-                start, stop = y * w + tc, y * w + td
+        # 1. Scores of the tested pixels (of searched cells in the second pass), a row
+        #    segment at a time; the extra last step only scores what is left.
+        for q in range(n_seg + 1):
+            if q < n_seg:
+                start, stop = seg[q, 0] * w + seg[q, 1], seg[q, 0] * w + seg[q, 2]
                 scores[start:stop] = 0
-                # The quick test: for each of the 8 opposite pairs (k, k + 8) of the circle,
-                # one of the two is darker than the centre minus t (all pairs) or one is
-                # brighter than the centre plus t (all pairs); a corner's arc of 9 holds one
-                # pixel of each pair. One view per circle pixel indexed from 0, bounds
-                # clamped to 0..255 so that the comparisons stay in uint8, no branches: the
-                # loop runs on the vector units.
+                # The quick test: for each of the 8 opposite pairs (k, k + 8) of the
+                # circle, one of the two is darker than the centre minus t (all pairs) or
+                # one is brighter than the centre plus t (all pairs); a corner's arc of 9
+                # holds one pixel of each pair. One view per circle pixel indexed from 0,
+                # bounds clamped to 0..255 so that the comparisons stay in uint8, no
+                # branches: the loop runs on the vector units.
                 p0 = flat[start + o[0] : stop + o[0]]
                 p1 = flat[start + o[1] : stop + o[1]]
                 p2 = flat[start + o[2] : stop + o[2]]
@@ -152,13 +185,13 @@ def detect_level(img, lo, hi_threshold, lo_threshold, cells, first_cell, boxes, 
                     if cand[j]:
                         idx[n_idx] = start + j
                         n_idx += 1
-            if n_idx == 0 or (y < tb and n_idx < _BATCH):
+            if n_idx == 0 or (q < n_seg and n_idx < _BATCH):
                 continue
-            # The scores of the candidates. With d_k = centre - circle pixel k, a pixel
-            # passes the segment test at t when an arc of 9 has all d > t (a darker ring)
-            # or all -d > t (a brighter one). With A the largest over the 16 arcs of the
-            # arc's smallest d, and B the same for -d, its score max(A, B) - 1 is the
-            # largest threshold it passes (cv2.FAST's score) and is below any it fails.
+            # The candidates' scores. With d_k = centre - circle pixel k, a pixel passes
+            # the segment test at t when an arc of 9 has all d > t (a darker ring) or all
+            # -d > t (a brighter one). With A the largest over the 16 arcs of the arc's
+            # smallest d, and B the same for -d, its score max(A, B) - 1 is the largest
+            # threshold it passes (cv2.FAST's score) and is below any it fails.
             for j in range(n_idx):
                 i = idx[j]
                 v = np.int16(flat[i])
@@ -197,33 +230,48 @@ def detect_level(img, lo, hi_threshold, lo_threshold, cells, first_cell, boxes, 
                     n_corners += 1
             n_idx = 0
         # 2. Non-maximum suppression: a corner is kept when its score is above each
-        #    neighbour's, 0 outside the tested area; in a cell's window, only the cell's.
+        #    neighbour's (0 outside the tested area, which is never written); in the
+        #    second pass only neighbours of its own cell count.
         for k in range(n_corners):
             i = corners[k]
-            y, x = i // w, i % w
             s = scores[i]
-            if ta < y < tb - 1 and tc < x < td - 1:
+            if pass_ == 0:
                 keep = (
                     s > scores[i - w - 1] and s > scores[i - w] and s > scores[i - w + 1] and s > scores[i - 1]
                     and s > scores[i + 1] and s > scores[i + w - 1] and s > scores[i + w] and s > scores[i + w + 1]
                 )  # fmt: skip
             else:
+                c = cell_flat[i]
                 keep = True
-                for yy in range(max(y - 1, ta), min(y + 2, tb)):
-                    for xx in range(max(x - 1, tc), min(x + 2, td)):
-                        if (yy != y or xx != x) and scores[yy * w + xx] >= s:
-                            keep = False
-            if keep and (want < 0 or cells[y, x] == want):
-                out_x[n_out] = x
-                out_y[n_out] = y
+                for nb in (i - w - 1, i - w, i - w + 1, i - 1, i + 1, i + w - 1, i + w, i + w + 1):
+                    if cell_flat[nb] == c and scores[nb] >= s:
+                        keep = False
+            if keep:
+                out_i[n_out] = i
                 out_s[n_out] = s
                 n_out += 1
-                if win == 0:
-                    covered[cells[y, x] - first_cell] = True
+    # The second pass's corners cell by cell (a stable counting sort keeps rows in order).
+    n_lo = n_out - n_hi
+    if n_lo > 0:
+        count = np.zeros(n_cells + 1, np.int64)
+        for k in range(n_hi, n_out):
+            count[cell_flat[out_i[k]] - first_cell + 1] += 1
+        for c in range(n_cells):
+            count[c + 1] += count[c]
+        lo_i = out_i[n_hi:n_out].copy()
+        lo_s = out_s[n_hi:n_out].copy()
+        for k in range(n_lo):
+            c = cell_flat[lo_i[k]] - first_cell
+            out_i[n_hi + count[c]] = lo_i[k]
+            out_s[n_hi + count[c]] = lo_s[k]
+            count[c] += 1
+    x = np.empty(n_out, np.int64)
+    y = np.empty(n_out, np.int64)
     cell_of = np.empty(n_out, np.int32)
-    for i in range(n_out):
-        cell_of[i] = cells[out_y[i], out_x[i]]
-    return out_x[:n_out], out_y[:n_out], out_s[:n_out].astype(np.float32), cell_of
+    for k in range(n_out):
+        y[k], x[k] = out_i[k] // w, out_i[k] % w
+        cell_of[k] = cell_flat[out_i[k]]
+    return x, y, out_s[:n_out].astype(np.float32), cell_of
 
 
 def circle_offsets(width: int) -> np.ndarray:
