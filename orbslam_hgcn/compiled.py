@@ -6,14 +6,16 @@ per-call overhead on small arrays outweighs the arithmetic: the pose-only optimi
 (:mod:`orbslam_hgcn.features.projection_search`). They are compiled with numba
 (:data:`jit`): without the GIL, so other threads run meanwhile, and cached on disk beside
 their modules (or in numba's user cache when the package folder is read-only). ORB
-extraction's FAST detection (:mod:`orbslam_hgcn.features.fast`) and its orientation and
-descriptor loops (:mod:`orbslam_hgcn.features.rbrief`) use the same settings; they are
+extraction's FAST detection (:mod:`orbslam_hgcn.features.fast`), quadtree
+(:mod:`orbslam_hgcn.features.distribute`) and orientation and descriptor loops
+(:mod:`orbslam_hgcn.features.rbrief`) use the same settings; they are
 loaded by an extractor's first extraction (the descriptor loops when it is built) and, in
 the extraction process, by one extraction before the first frame.
 
 The first run after an install compiles them (7-10 s for the tracking kernels and about
-6 s for FAST on a 2-core machine); later runs load them from the cache (about 0.5 s). :func:`warm_up` does either before the first frame,
-so that the time is not spent inside a frame's tracking.
+10 s for FAST and the quadtree on a 2-core machine); later runs load them from the cache
+(about 0.5 s). :func:`warm_up` does either for the tracking kernels before the first
+frame, so that the time is not spent inside a frame's tracking.
 """
 
 from __future__ import annotations

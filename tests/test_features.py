@@ -108,6 +108,28 @@ def test_quadtree_matches_orbslam_reference():
         assert len(set(ours.tolist()) & ref) >= 0.9 * n_wanted
 
 
+def test_quadtree_over_levels_keeps_the_wanted_count_and_the_strongest_of_a_node():
+    # Two levels in one call, in any input order: each keeps min(N, wanted) corners; a
+    # level with fewer corners than wanted keeps them all; a lone strong corner in its own
+    # quadrant survives; of two corners at the same position the stronger one is kept.
+    rng = np.random.default_rng(7)
+    bounds = np.array([(16.0, 624.0, 16.0, 464.0), (16.0, 517.0, 16.0, 384.0)])
+    x = np.concatenate([rng.uniform(16, 300, 800), [600.0, 100.0, 100.0], rng.uniform(16, 500, 30)])
+    y = np.concatenate([rng.uniform(16, 200, 800), [450.0, 300.0, 300.0], rng.uniform(16, 380, 30)])
+    group = np.concatenate([np.zeros(803, int), np.ones(30, int)])
+    resp = np.concatenate([rng.uniform(7, 50, 800), [60.0, 30.0, 40.0], rng.uniform(7, 50, 30)])
+    keys = quadtree_keys(x, y, group, bounds)
+    perm = rng.permutation(len(x))
+    kept = perm[distribute_quadtree(keys[perm], resp[perm], np.array([100, 40]))]
+    assert np.sum(group[kept] == 0) == 100 and np.sum(group[kept] == 1) == 30
+    assert 800 in kept  # alone in the bottom-right quadrant
+    assert 802 in kept and 801 not in kept  # same position: the stronger one
+    with pytest.raises(ValueError, match="quadtree keys"):
+        distribute_quadtree(np.array([-1, 5]), np.ones(2), np.array([1]))
+    with pytest.raises(ValueError, match="quadtree keys"):
+        distribute_quadtree(keys, resp, np.array([100]))  # level 1 has no entry
+
+
 def test_weak_corners_only_where_a_cell_has_no_strong_one(extractor):
     # Left half: high-contrast blobs (many FAST scores above 20); right half: the same
     # pattern at 60 grey levels of contrast (scores between 7 and 20 only). ORB-SLAM's cells

@@ -263,9 +263,10 @@ def test_map_invariants_after_a_run(synth_run):
 
 def test_compiled_kernels_have_one_signature_after_a_run(synth_run):
     """System() compiled (or loaded) the kernels with the argument types of a real run, so
-    the run (pose-only optimisation, projection search, fusion, FAST, ORB description) compiled
+    the run (pose-only optimisation, projection search, fusion, FAST, quadtree, ORB description) compiled
     nothing more."""
     from orbslam_hgcn.backend.pose_only import _optimize
+    from orbslam_hgcn.features.distribute import _distribute, _radix_argsort
     from orbslam_hgcn.features.fast import detect_level
     from orbslam_hgcn.features.projection_search import _best_two_in_windows
     from orbslam_hgcn.features.rbrief import ic_moments, rbrief
@@ -276,3 +277,4 @@ def test_compiled_kernels_have_one_signature_after_a_run(synth_run):
     assert len(ic_moments.signatures) == 1
     assert len(rbrief.signatures) == 1
     assert len(detect_level.signatures) == 1
+    assert len(_distribute.signatures) == 1 and len(_radix_argsort.signatures) == 1

@@ -11,14 +11,18 @@ corner of each node survives. Here:
   (one high-threshold pass per level, then the low threshold on the cells left empty);
   :func:`cell_ids` gives the cell of every corner;
 * the quadtree is evaluated on Morton codes of the corner positions, which give the node of
-  every corner at every depth without building the tree, for all pyramid levels at once.
+  every corner at every depth without building the tree, for all pyramid levels at once,
+  in one compiled pass over the corners sorted by code.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
+
+from orbslam_hgcn.compiled import jit
 
 log = logging.getLogger(__name__)
 
@@ -86,11 +90,6 @@ def _spread_table() -> np.ndarray:
 _SPREAD = _spread_table()
 
 
-def _first_of_runs(values: np.ndarray) -> np.ndarray:
-    """(K,) bool: True where a sorted array starts a new run of equal values."""
-    return np.concatenate([np.ones(min(len(values), 1), dtype=bool), values[1:] != values[:-1]])
-
-
 def quadtree_keys(x: np.ndarray, y: np.ndarray, group: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     """(N,) int64 quadtree keys: level, root node and Morton code of each corner.
 
@@ -124,58 +123,153 @@ def distribute_quadtree(key: np.ndarray, response: np.ndarray, n_wanted: np.ndar
     of those are dropped here so exactly ``min(N_g, n_wanted_g)`` corners remain per level.
     Returns (K,) int64 sorted indices into the inputs.
     """
-    n = len(key)
-    n_wanted = np.asarray(n_wanted, dtype=np.int64)
-    n_groups = len(n_wanted)
-    if n == 0:
+    key = np.ascontiguousarray(key, dtype=np.int64)
+    response = np.ascontiguousarray(response, dtype=np.float64)
+    n_wanted = np.ascontiguousarray(n_wanted, dtype=np.int64)
+    if len(key) == 0:
         return np.zeros(0, dtype=np.int64)
-    key = np.asarray(key, dtype=np.int64)
-    order = np.argsort(key, kind="stable")
-    key = key[order]
-    gs = key >> _GROUP_SHIFT
+    if key.min() < 0 or int(key.max() >> _GROUP_SHIFT) >= len(n_wanted):
+        raise ValueError("quadtree keys must be non-negative and name a level of n_wanted")
+    return _distribute(key, response, n_wanted, int(key.max()).bit_length(), len(key).bit_length())
+
+
+@jit
+def _radix_argsort(key, bits):  # pragma: no cover - compiled
+    """Stable argsort of non-negative int64 keys below 2**bits (least significant digit
+    first, 11-bit digits)."""
+    n = len(key)
+    idx = np.arange(n)
+    tmp = np.empty(n, np.int64)
+    shift = 0
+    while shift < bits:
+        count = np.zeros(2049, np.int64)
+        for i in range(n):
+            count[((key[idx[i]] >> shift) & 2047) + 1] += 1
+        for d in range(2048):
+            count[d + 1] += count[d]
+        for i in range(n):
+            j = idx[i]
+            d = (key[j] >> shift) & 2047
+            tmp[count[d]] = j
+            count[d] += 1
+        idx, tmp = tmp, idx
+        shift += 11
+    return idx
+
+
+@jit
+def _merge_argsort(values):  # pragma: no cover - compiled
+    """Stable argsort of (N,) float64 values (bottom-up merge sort)."""
+    n = len(values)
+    idx = np.arange(n)
+    tmp = np.empty(n, np.int64)
+    width = 1
+    while width < n:
+        for lo in range(0, n, 2 * width):
+            mid, hi = min(lo + width, n), min(lo + 2 * width, n)
+            i, j = lo, mid
+            for k in range(lo, hi):
+                if i < mid and (j >= hi or values[idx[i]] <= values[idx[j]]):
+                    tmp[k] = idx[i]
+                    i += 1
+                else:
+                    tmp[k] = idx[j]
+                    j += 1
+        idx, tmp = tmp, idx
+        width *= 2
+    return idx
+
+
+@jit
+def _distribute(key, response, n_wanted, key_bits, index_bits):  # pragma: no cover - compiled
+    """:func:`distribute_quadtree` on checked arrays: keys below 2**key_bits, N below
+    2**index_bits (the bits the radix sorts look at)."""
+    n = len(key)
+    n_groups = len(n_wanted)
+    order = _radix_argsort(key, key_bits)
+    k = key[order]
+    gs = k >> _GROUP_SHIFT
     # Depth at which neighbours in Morton order fall into different nodes: keys share their
     # node at depth d while their highest differing bit is below 2 (D - d). Different roots
-    # or levels differ already at depth 0; identical positions never separate (D + 1).
-    diff = key[1:] ^ key[:-1]
-    top_bit = np.frexp(diff.astype(np.float64))[1] - 1
-    sep = np.where(diff > 0, np.maximum(_MAX_DEPTH - top_bit // 2, 0), _MAX_DEPTH + 1)
+    # or levels differ already at depth 0; identical positions never separate (D + 1). The
+    # highest bit is read off the float64 exponent.
     n_bins = _MAX_DEPTH + 2
-    same = gs[1:] == gs[:-1]
-    hist = np.bincount(gs[1:][same] * n_bins + sep[same], minlength=n_groups * n_bins)
-    n_nodes = 1 + np.cumsum(hist.reshape(n_groups, n_bins), axis=1)  # (G, D + 2) per depth
-    enough = n_nodes >= n_wanted[:, None]
+    sep = np.empty(n, np.int64)
+    hist = np.zeros(n_groups * n_bins, np.int64)
+    for i in range(1, n):
+        d = k[i] ^ k[i - 1]
+        if d > 0:
+            sep[i] = max(_MAX_DEPTH - (math.frexp(float(d))[1] - 1) // 2, 0)
+        else:
+            sep[i] = _MAX_DEPTH + 1
+        if gs[i] == gs[i - 1]:
+            hist[gs[i] * n_bins + sep[i]] += 1
     # First depth with enough nodes per level; a level with too few corners keeps them all.
-    depth = np.where(enough.any(axis=1), enough.argmax(axis=1), _MAX_DEPTH + 1)
-    pair_g = gs[1:]
-    first = np.ones(1, dtype=bool)
-    p_new = np.concatenate([first, sep <= np.maximum(depth - 1, 0)[pair_g]])
-    c_new = np.concatenate([first, sep <= depth[pair_g]])
-    p_id = np.cumsum(p_new) - 1
-    n_parent = int(p_id[-1]) + 1
-    p_group = gs[p_new]
-    n_points = np.bincount(p_id, minlength=n_parent)
-    n_children = np.bincount(p_id[c_new], minlength=n_parent)
-    need = n_wanted - np.bincount(p_group, minlength=n_groups)
-    # Split the most populated parents of each level first (ORB-SLAM sorts nodes by size)
-    # while the node count is still below n_wanted.
-    by_size = np.argsort(p_group * (n + 1) + (n - n_points), kind="stable")
-    gain = n_children[by_size] - 1
-    before = np.cumsum(gain) - gain
-    grp_sorted = p_group[by_size]
-    before -= before[np.searchsorted(grp_sorted, grp_sorted)]
-    split = np.zeros(n_parent, dtype=bool)
-    split[by_size] = before < need[grp_sorted]
-    leaf_id = np.cumsum(p_new | (c_new & split[p_id])) - 1
-    # Strongest corner of each leaf: one sort on leaf id (scaled past the response range)
-    # plus the corner's weakness.
-    resp = np.asarray(response, dtype=np.float64)[order]
-    weak = resp.max() - resp  # >= 0, smallest for the strongest corner
-    span = float(weak.max()) + 1.0
-    pick = np.argsort(leaf_id * span + weak, kind="stable")
-    best = pick[_first_of_runs(leaf_id[pick])]
-    # Keep at most n_wanted leaves per level, the strongest.
-    ranked = best[np.argsort(gs[best] * span + weak[best], kind="stable")]
-    rg = gs[ranked]
-    rank = np.arange(len(ranked)) - np.searchsorted(rg, rg)
-    kept = ranked[rank < n_wanted[rg]]
-    return np.sort(order[kept])
+    depth = np.full(n_groups, _MAX_DEPTH + 1, np.int64)
+    for g in range(n_groups):
+        n_nodes = 1
+        for b in range(n_bins):
+            n_nodes += hist[g * n_bins + b]
+            if n_nodes >= n_wanted[g]:
+                depth[g] = b
+                break
+    # The parent (node at depth - 1) of each corner, and whether it starts a child node.
+    p_id = np.empty(n, np.int64)
+    c_new = np.empty(n, np.bool_)
+    n_parent = 0
+    for i in range(n):
+        p_new = True
+        c_new[i] = True
+        if i > 0:
+            p_new = sep[i] <= max(depth[gs[i]] - 1, 0)
+            c_new[i] = sep[i] <= depth[gs[i]]
+        n_parent += p_new
+        p_id[i] = n_parent - 1
+    p_group = np.empty(n_parent, np.int64)
+    n_points = np.zeros(n_parent, np.int64)
+    n_children = np.zeros(n_parent, np.int64)
+    for i in range(n):
+        p = p_id[i]
+        p_group[p] = gs[i]
+        n_points[p] += 1
+        n_children[p] += c_new[i]
+    # Per level, split the most populated parents first (ORB-SLAM sorts nodes by size; ties
+    # in Morton order) while the node count is still below n_wanted.
+    split = np.zeros(n_parent, np.bool_)
+    a = 0
+    while a < n_parent:
+        b = a
+        while b < n_parent and p_group[b] == p_group[a]:
+            b += 1
+        need = n_wanted[p_group[a]] - (b - a)
+        before = 0
+        for p in _radix_argsort(n - n_points[a:b], index_bits) + a:
+            split[p] = before < need
+            before += n_children[p] - 1
+        a = b
+    # The strongest corner of each leaf (the first on ties, in Morton order).
+    weak = response[order].max() - response[order]
+    best = np.empty(n, np.int64)
+    n_best = 0
+    for i in range(n):
+        if i == 0 or p_id[i] != p_id[i - 1] or (c_new[i] and split[p_id[i]]):
+            best[n_best] = i
+            n_best += 1
+        elif weak[i] < weak[best[n_best - 1]]:
+            best[n_best - 1] = i
+    # At most n_wanted leaves per level, the strongest.
+    kept = np.empty(n_best, np.int64)
+    n_kept = 0
+    a = 0
+    while a < n_best:
+        b = a
+        while b < n_best and gs[best[b]] == gs[best[a]]:
+            b += 1
+        leaves = best[a:b]
+        ranked = leaves[_merge_argsort(weak[leaves])]
+        for j in range(min(len(ranked), n_wanted[gs[leaves[0]]])):
+            kept[n_kept] = order[ranked[j]]
+            n_kept += 1
+        a = b
+    kept = kept[:n_kept]
+    return kept[_radix_argsort(kept, index_bits)]
