@@ -248,7 +248,8 @@ def _distribute(key, response, n_wanted, key_bits, index_bits):  # pragma: no co
             before += n_children[p] - 1
         a = b
     # The strongest corner of each leaf (the first on ties, in Morton order).
-    weak = response[order].max() - response[order]
+    resp = response[order]
+    weak = resp.max() - resp
     best = np.empty(n, np.int64)
     n_best = 0
     for i in range(n):

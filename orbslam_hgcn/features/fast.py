@@ -67,7 +67,7 @@ def detect_level(img, lo, hi_threshold, lo_threshold, cells, first_cell, boxes, 
     """
     h, w = img.shape
     lo = max(lo, 0)  # every read and write below stays inside the image
-    ta, tb, tc, td = lo + 3, h - lo - 3, lo + 3, w - lo - 3  # the tested area
+    ta, tb, tc, td = lo + MARGIN, h - lo - MARGIN, lo + MARGIN, w - lo - MARGIN  # the tested area
     flat = img.ravel()
     cell_flat = cells.ravel()
     scores = np.zeros(h * w, np.uint8)  # the pass's scores; 0 elsewhere
@@ -84,7 +84,12 @@ def detect_level(img, lo, hi_threshold, lo_threshold, cells, first_cell, boxes, 
     n_hi = 0
     n_cells = len(boxes)
     searched = np.zeros(n_cells, np.bool_)  # cells searched at the low threshold
-    seg = np.empty((h + n_cells * h, 3), np.int64)  # (row, first col, end col) to test
+    # (row, first col, end col) to test: a row of the level in the first pass, at most a
+    # row of each searched cell in the second.
+    n_rows = h
+    for c in range(n_cells):
+        n_rows += max(boxes[c, 3] - boxes[c, 2], 0)
+    seg = np.empty((n_rows, 3), np.int64)
     for pass_ in range(2):
         if ta >= tb or tc >= td:
             break

@@ -16,8 +16,8 @@ Choices of this implementation:
   does per cell (a corner's FAST score does not depend on the threshold, so the high-pass
   corners are exactly those of ORB-SLAM's cells). Both passes are one compiled call per
   level that finds the corners ``cv2.FAST`` finds on those windows
-  (:mod:`orbslam_hgcn.features.fast`); the quadtree is evaluated on whole arrays (see
-  :mod:`orbslam_hgcn.features.distribute`);
+  (:mod:`orbslam_hgcn.features.fast`); the quadtree is one compiled pass over the corners
+  of all levels (:mod:`orbslam_hgcn.features.distribute`);
 * orientation and descriptors are compiled loops (:mod:`orbslam_hgcn.features.rbrief`):
   the moments on the level image, the rBRIEF tests on the level image blurred with a 7x7,
   sigma 2 Gaussian as ORB-SLAM does; they equal ``cv2.ORB.compute``'s bit for bit, which
@@ -45,7 +45,6 @@ from orbslam_hgcn.features.rbrief import ic_moments, opencv_rbrief
 from orbslam_hgcn.geometry.camera import PinholeCamera
 
 log = logging.getLogger(__name__)
-
 
 
 def circular_patch_offsets(half_patch: int) -> tuple[np.ndarray, np.ndarray]:
