@@ -6,6 +6,7 @@ import json
 import multiprocessing
 import os
 import threading
+import time
 
 import cv2
 
@@ -26,6 +27,7 @@ from orbslam_hgcn.map import check_invariants
 from orbslam_hgcn.map.window import apply_window, local_window
 from orbslam_hgcn.pipeline.extraction import ExtractionError, ExtractionProcess
 from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
+from orbslam_hgcn.pipeline.stages import ThreadedStages
 from orbslam_hgcn.pipeline.system import System
 from orbslam_hgcn.pipeline.worker import WorkerError
 
@@ -323,3 +325,73 @@ def test_ba_result_written_back_after_the_map_changed(sequential_runs):
     np.testing.assert_array_equal(m.positions(w.point_ids[good]), X_new[good])
     np.testing.assert_array_equal(m.positions(w.point_ids[:2]), before_bad)  # bad points untouched
     assert check_invariants(m) == []
+
+
+# --- pausing local mapping for a loop correction -----------------------------------------
+class _StubMap:
+    def __init__(self) -> None:
+        self.lock = TrackingFirstLock()
+
+    def set_not_erase(self, kf_id: int) -> None:
+        pass
+
+    def set_erase(self, kf_id: int) -> None:
+        pass
+
+
+class _StubKeyFrame:
+    def __init__(self, kf_id: int) -> None:
+        self.id, self.bad = kf_id, False
+
+
+class _SlowMapper:
+    """Maps a keyframe in 30 ms and records the order."""
+
+    def __init__(self) -> None:
+        self.map, self.solver, self.should_abort, self.in_ba = _StubMap(), None, None, False
+        self.done: list[int] = []
+
+    def process(self, kf):
+        time.sleep(0.03)
+        self.done.append(kf.id)
+        return None
+
+
+def test_pausing_mapping_first_maps_every_keyframe_handed_over():
+    # A loop correction moves the keyframes of the map; one still waiting in local
+    # mapping's queue has no spanning-tree parent and no connections yet, so it would keep
+    # its uncorrected pose. As in ORB-SLAM, a pause first maps the queued keyframes, and a
+    # keyframe handed over by a frame being tracked when the pause is asked is waited for.
+    mapper = _SlowMapper()
+    stages = ThreadedStages(mapper, None, process_solver=False)
+    try:
+        for i in range(3):
+            stages.submit(_StubKeyFrame(i))
+        stages.pause_mapping(True)
+        try:
+            assert mapper.done == [0, 1, 2]
+            assert not stages.mapping_idle()  # the tracker makes no keyframe meanwhile
+        finally:
+            stages.pause_mapping(False)
+
+        handed = threading.Event()
+
+        def frame_in_flight():
+            with stages.handover():
+                handed.set()
+                time.sleep(0.05)  # tracking the frame
+                stages.submit(_StubKeyFrame(3))
+
+        t = threading.Thread(target=frame_in_flight)
+        t.start()
+        handed.wait()
+        stages.pause_mapping(True)
+        try:
+            assert mapper.done == [0, 1, 2, 3]
+        finally:
+            stages.pause_mapping(False)
+        t.join()
+        assert stages.mapping_idle()
+    finally:
+        stages.close()
+    _assert_nothing_left()

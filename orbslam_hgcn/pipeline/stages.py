@@ -20,15 +20,21 @@ processed), ``check()`` (re-raise a stage's failure) and ``close(drain)``.
   are done (``BackendConfig.local_ba_abort_robust``); a stop request (loop correction,
   shutdown) aborts it too;
 * the loop closer pauses local mapping for the correction and for writing back the global
-  BA: :meth:`ThreadedStages.pause_mapping` waits until the keyframe being mapped is done
-  and holds the next one back (ORB-SLAM ``RequestStop`` / ``Release``).
+  BA (ORB-SLAM ``RequestStop`` / ``Release``): :meth:`ThreadedStages.pause_mapping` stops
+  new keyframes, waits for the frame being tracked to hand over its keyframe
+  (:meth:`ThreadedStages.handover`), lets local mapping map every keyframe it was given,
+  and holds it still until released. A keyframe still waiting in the queue has no
+  spanning-tree parent and no covisibility links yet, so a correction would leave it at
+  its uncorrected pose; ORB-SLAM's local mapping likewise empties its queue before it stops.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
 from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver
@@ -108,6 +114,11 @@ class SequentialStages:
     def mapping_idle(self) -> bool:
         return True  # the mapper finished the previous keyframe already
 
+    @contextlib.contextmanager
+    def handover(self) -> Iterator[None]:
+        """Nothing runs beside the tracker."""
+        yield
+
     def submit(self, kf: KeyFrame) -> None:
         out = self.mapper.process(kf)
         if out is not None and self.loop_closer is not None:
@@ -137,6 +148,7 @@ class ThreadedStages:
         self.mapper, self.loop_closer = mapper, loop_closer
         self.activity = ActivityCounter()
         self._gate = threading.Lock()  # held by the mapper per keyframe, by a pause
+        self._handover = threading.Lock()  # held by the tracker from its keyframe decision to the hand-over
         self._paused = False
         self._stopping = False
         self._solvers: list[Any] = []
@@ -178,6 +190,13 @@ class ThreadedStages:
             return True
         return bool(self.mapper.in_ba) and w.pending == 0
 
+    @contextlib.contextmanager
+    def handover(self) -> Iterator[None]:
+        """Held by the tracker around a frame's tracking and the hand-over of its keyframe,
+        so that :meth:`pause_mapping` sees every keyframe the tracker decided on."""
+        with self._handover:
+            yield
+
     def submit(self, kf: KeyFrame) -> None:
         self.check()
         # A keyframe waiting in the queue is linked in the map already; keyframe culling of
@@ -201,10 +220,16 @@ class ThreadedStages:
             self._loop.submit(out)
 
     def pause_mapping(self, pause: bool) -> None:
-        """True: abort a running local BA, wait for the keyframe being mapped, hold the next.
-        False: let local mapping go on. Called by the loop closer's thread."""
+        """True: stop new keyframes, map the ones handed over (a running local BA is cut
+        short), then hold local mapping still. False: let it go on. Called by the loop
+        closer's thread, which must not hold the map lock."""
         if pause:
-            self._paused = True
+            self._paused = True  # from now on the tracker makes no keyframe (mapping_idle)
+            with self._handover:  # a frame that decided on one before has handed it over
+                pass
+            w = self._mapping
+            if w is not None and not self._stopping:
+                w.wait_idle()
             self._gate.acquire()
             self.activity.enter()  # a loop correction or write-back counts as optimising
         else:

@@ -348,9 +348,16 @@ class System:
             kps = self._extract(image, extractor)
             extraction_ms = 1000.0 * (time.perf_counter() - t0)
         t1 = time.perf_counter()
-        with first(self.tracker.map.lock):
-            self.timings["lock_wait"].append(1000.0 * (time.perf_counter() - t1))
-            result = self.tracker.track(Frame(frame_id, timestamp, self.camera, kps))
+        # A loop correction pausing local mapping waits for this frame's keyframe to be
+        # handed over (ThreadedStages.pause_mapping); after a map reset it is handed over
+        # below, once the stages are on the new map.
+        with stages.handover():
+            with first(self.tracker.map.lock):
+                self.timings["lock_wait"].append(1000.0 * (time.perf_counter() - t1))
+                result = self.tracker.track(Frame(frame_id, timestamp, self.camera, kps))
+            if not result.reset:
+                for kf in result.new_keyframes:
+                    self._on_keyframe(kf)
         self.timings["extraction"].append(extraction_ms)
         if result.state == TrackingState.OK and not result.initialized:
             self.timings["tracking"].append(result.time_ms)
@@ -361,8 +368,9 @@ class System:
             self.events.append({"frame": frame_id, "t": timestamp, "event": "initialized"})
         if result.lost:
             self.events.append({"frame": frame_id, "t": timestamp, "event": "lost"})
-        for kf in result.new_keyframes:
-            self._on_keyframe(kf)
+        if result.reset:
+            for kf in result.new_keyframes:
+                self._on_keyframe(kf)
         self.timings["frame"].append(1000.0 * (time.perf_counter() - t0))
         self.frame_started.append(t0)
         optimising = optimising or stages.optimising or stages.activity.started != started
