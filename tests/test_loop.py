@@ -292,6 +292,40 @@ def test_global_ba_after_the_loop_lowers_reprojection_error_and_keeps_the_map_co
     assert check_invariants(rm1.map) == []
 
 
+def test_keyframe_added_during_global_ba_is_placed_on_the_optimised_points():
+    """Keyframe 20 is made while a global BA of keyframes 0-19 runs. The BA's answer moves
+    every keyframe and point by one rigid motion, except keyframe 20's spanning-tree
+    parent, which it moves 5 cm further (as when the parent lies on the other side of a
+    loop). Keyframe 20 must end where its observations of the optimised points put it,
+    not follow its parent's extra move."""
+    from orbslam_hgcn.backend.bundle_adjustment import BAResult
+    from orbslam_hgcn.config import BackendConfig
+    from orbslam_hgcn.loop.global_ba import _write_back
+
+    m = Map()
+    windows = {}
+    build_ring_map(m=m, stop=21, on_keyframe=lambda kf: windows.setdefault(kf.id, global_window(m)))
+    w, new = windows[19], m.keyframe(20)
+    rows = {int(k): i for i, k in enumerate(w.kf_ids)}
+    assert new.id not in rows and new.parent in rows
+    G = _sim3(1.0, (1.0, -2.0, 0.5), (0.03, -0.01, 0.02))  # the BA's change of gauge
+    T_cw = w.T_cw @ inv_T(G)
+    D = np.eye(4)
+    D[:3, 3] = (0.05, 0.0, 0.0)
+    T_cw[rows[new.parent]] = T_cw[rows[new.parent]] @ inv_T(D)
+    res = BAResult(T_cw, w.points @ G[:3, :3].T + G[:3, 3], np.zeros(len(w.obs_kf), dtype=bool))
+    expected = new.T_cw @ inv_T(G)
+    own = [p for p in new.observed_points()[1].tolist() if m.point(p).ref_kf == new.id]
+    X_own = m.positions(np.array(own)) @ G[:3, :3].T + G[:3, 3]
+    out = _write_back(m, w, res, BackendConfig())
+    assert out.n_keyframes_propagated == out.n_keyframes_refined == 1
+    centre = lambda T: -T[:3, :3].T @ T[:3, 3]  # noqa: E731
+    assert np.linalg.norm(centre(new.T_cw) - centre(expected)) < 0.005  # following the parent: 0.05
+    assert rotation_angle_deg(new.T_cw[:3, :3] @ expected[:3, :3].T) < 0.2
+    # The points keyframe 20 made follow it.
+    assert len(own) > 20 and np.abs(m.positions(np.array(own)) - X_own).max() < 0.01
+
+
 # --- end to end -------------------------------------------------------------------------
 @pytest.mark.slow
 def test_system_closes_a_small_synthetic_loop(tmp_path_factory):

@@ -6,7 +6,12 @@ The problem is cut from the map (every good keyframe and point, the origin keyfr
 and solved with gtsam without holding the map lock. Writing back, the keyframes of the
 problem take their optimised pose; a keyframe added meanwhile follows its spanning-tree
 parent (its pose relative to the parent is kept), and a point added meanwhile follows its
-reference keyframe (its position in that camera is kept). A ``solver``
+reference keyframe (its position in that camera is kept). A keyframe added meanwhile was
+tracked on the map as the loop correction left it, which the global BA then moves by up to
+the remaining loop error, and its parent may lie on either side of the loop; so after
+following its parent it is refined by motion-only BA on the optimised points it sees (when
+it sees at least ``BackendConfig.pose_min_inliers`` of them), as the map's next local BA
+would do. A ``solver``
 (:mod:`orbslam_hgcn.backend.solver`) may run the optimisation in another process; with
 ``pause_mapping``, local mapping is held still while the result is written back (ORB-SLAM
 stops local mapping there), so that a local BA solved meanwhile cannot overwrite it.
@@ -23,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from orbslam_hgcn.backend.bundle_adjustment import BAResult, as_problem
+from orbslam_hgcn.backend.pose_only import optimize_pose
 from orbslam_hgcn.backend.solver import InProcessSolver
 from orbslam_hgcn.config import BackendConfig
 from orbslam_hgcn.map import Map
@@ -38,6 +44,7 @@ class GlobalBAResult:
     n_keyframes: int = 0
     n_points: int = 0
     n_keyframes_propagated: int = 0
+    n_keyframes_refined: int = 0  # of the propagated ones, refined on the optimised points
     n_points_propagated: int = 0
 
 
@@ -62,17 +69,34 @@ def run_global_ba(
     if pause_mapping is not None:
         pause_mapping(True)
     try:
-        out = _write_back(m, w, res)
+        out = _write_back(m, w, res, cfg)
     finally:
         if pause_mapping is not None:
             pause_mapping(False)
-    log.info("global BA: %d keyframes, %d points; propagated to %d keyframes, %d points created meanwhile",
-             out.n_keyframes, out.n_points, out.n_keyframes_propagated, out.n_points_propagated)  # fmt: skip
+    log.info("global BA: %d keyframes, %d points; propagated to %d keyframes (%d refined), %d points created "
+             "meanwhile", out.n_keyframes, out.n_points, out.n_keyframes_propagated, out.n_keyframes_refined,
+             out.n_points_propagated)  # fmt: skip
     return out
 
 
-def _write_back(m: Map, w: BAWindow, res: BAResult) -> GlobalBAResult:
+def _refine_on_optimised_points(m: Map, kf_id: int, T_cw: np.ndarray, optimised: np.ndarray,
+                                cfg: BackendConfig) -> np.ndarray | None:
+    """Motion-only BA of keyframe ``kf_id`` from ``T_cw`` on the points of ``optimised``
+    (sorted ids) it observes; None when too few of them, or too few inliers."""
+    kf = m.keyframe(kf_id)
+    slots, pids = kf.observed_points()
+    use = np.isin(pids, optimised, assume_unique=False) & ~m.point_arrays(pids).bad
+    if int(use.sum()) < cfg.pose_min_inliers:
+        return None
+    slots, pids = slots[use], pids[use]
+    kp = kf.keypoints
+    r = optimize_pose(T_cw, m.positions(pids), kp.uv[slots], kp.inv_level_sigma2[kp.octave[slots]], kf.camera.K, cfg)
+    return r.T_cw if r.ok else None
+
+
+def _write_back(m: Map, w: BAWindow, res: BAResult, cfg: BackendConfig) -> GlobalBAResult:
     out = GlobalBAResult(len(w.kf_ids), len(w.point_ids))
+    optimised = np.sort(np.asarray(w.point_ids, dtype=np.int64))
     with m.lock:
         in_window = set(w.kf_ids.tolist())
         before = {kf.id: kf.T_cw.copy() for kf in m.keyframes()}
@@ -89,6 +113,10 @@ def _write_back(m: Map, w: BAWindow, res: BAResult) -> GlobalBAResult:
                 if c not in new_T:
                     T_cp = before[c] @ np.linalg.inv(before[k])
                     new_T[c] = T_cp @ new_T[k]
+                    refined = _refine_on_optimised_points(m, c, new_T[c], optimised, cfg)
+                    if refined is not None:
+                        new_T[c] = refined
+                        out.n_keyframes_refined += 1
                     m.set_keyframe_pose(c, new_T[c])
                     out.n_keyframes_propagated += 1
                 stack.append(c)
