@@ -156,8 +156,9 @@ def run_one(
     configs = Configs.from_yaml(config)
     configs = dataclasses.replace(
         configs,
+        # speed 0: the system takes frames as they come; ReaderSequence paces them (--rate).
         threads=dataclasses.replace(
-            configs.threads, sequential=mode == "sequential", process_solver=mode == "threaded"
+            configs.threads, sequential=mode == "sequential", process_solver=mode == "threaded", speed=0.0
         ),
         loop_closing=dataclasses.replace(configs.loop_closing, enabled=loop),
     )

@@ -260,10 +260,14 @@ def _add_sequence_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _add_sequential_argument(p: argparse.ArgumentParser) -> None:
-    """--sequential (run, compare, demo)."""
+    """--sequential and --speed (run, compare, demo)."""
     p.add_argument("--sequential", action="store_true",
                    help="run local mapping and loop closing in order after each frame (reproducible), "
                    "instead of in worker threads")
+    p.add_argument("--speed", type=float, default=None, metavar="X",
+                   help="threaded runs: take frames no faster than X times the rate of their timestamps, as "
+                   "a camera delivers them (default 1, or threads.speed of --config; 0: as fast as they are "
+                   "processed, which leaves local mapping less time per frame and so fewer keyframes)")
 
 
 @subcommand
@@ -306,7 +310,7 @@ def _run_run(args: argparse.Namespace) -> int:
         args.path, args.out, kind=args.dataset, config=args.config, max_frames=args.max_frames,
         loop_closing=not args.no_loop, progress=not args.no_progress, vocab=args.vocab, rerun=args.rerun,
         load_map=args.load_map, save_map=args.save_map, localization=args.localization,
-        sequential=args.sequential,
+        sequential=args.sequential, speed=args.speed,
     )
     for line in format_report(report):
         print(line)
@@ -407,6 +411,7 @@ def _run_compare(args: argparse.Namespace) -> int:
     comp = run_comparison(
         args.path, args.out, kind=args.dataset, config=args.config, runs=args.runs, vocabs=args.vocabs,
         max_frames=args.max_frames, progress=not args.no_progress, sequential=args.sequential,
+        speed=args.speed,
         on_run=lambda r: print(describe_run(r)),
     )
     print(format_markdown(comp))
@@ -444,5 +449,6 @@ def _run_demo(args: argparse.Namespace) -> int:
 
     rerun = [] if args.no_rerun else args.rerun
     comp = run_demo(out=args.out, frames=args.frames, runs=args.runs, cache=args.cache, rerun=rerun,
-                    progress=not args.no_progress, sequential=args.sequential)
+                    progress=not args.no_progress, sequential=args.sequential,
+                    speed=args.speed)
     return 1 if any(not r.ok for r in comp.runs) else 0

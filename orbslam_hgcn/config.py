@@ -634,3 +634,13 @@ class ThreadsConfig:
     # scores, quadtree, keypoint objects) hold the GIL; on a thread they contend with
     # tracking and local mapping for it.
     extraction_process: bool = True
+    # Threaded only: System.run hands frame i to the tracker no earlier than
+    # (t_i - t_0) / speed seconds after frame 0, t being the dataset's timestamps, as a
+    # camera delivers them (ORB-SLAM's example programs pace datasets the same way). Local
+    # mapping makes a keyframe whenever it is free, so a run that outruns the camera gets
+    # fewer keyframes, and more so on a faster machine. 0: as fast as frames are processed.
+    speed: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.speed) and self.speed >= 0):
+            raise ConfigError(f"threads.speed: must be a finite number >= 0 (0: no pacing), found {self.speed!r}")

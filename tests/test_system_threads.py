@@ -2,6 +2,7 @@
 that end cleanly and track as well, stage errors reaching the caller, and the child-process
 solver giving the in-process results."""
 
+import dataclasses
 import json
 import multiprocessing
 import os
@@ -18,9 +19,10 @@ from orbslam_hgcn.backend.pose_graph import relative_sim3
 from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver, SolverError
 from orbslam_hgcn.backend.synthetic import drifted_loop, make_scene, perturb_pose
 from orbslam_hgcn.cli import main
-from orbslam_hgcn.config import BackendConfig, ORBConfig, load_camera
+from orbslam_hgcn.config import BackendConfig, ORBConfig, ThreadsConfig, load_camera
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.datasets.base import Sequence
+from orbslam_hgcn.errors import ConfigError
 from orbslam_hgcn.evaluation.ate import evaluate
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.map import check_invariants
@@ -28,7 +30,7 @@ from orbslam_hgcn.map.window import apply_window, local_window
 from orbslam_hgcn.pipeline.extraction import ExtractionError, ExtractionProcess
 from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
 from orbslam_hgcn.pipeline.stages import ThreadedStages
-from orbslam_hgcn.pipeline.system import System
+from orbslam_hgcn.pipeline.system import Configs, System
 from orbslam_hgcn.pipeline.worker import WorkerError
 
 N_FRAMES = 50  # initialisation takes about 22 frames of this sequence
@@ -167,6 +169,57 @@ def test_cli_run_is_threaded_unless_sequential(synth_replay_100, tmp_path):
         assert stats["threads"]["sequential"] is sequential
         assert stats["frames"]["tracked"] > 0
         _assert_nothing_left()
+
+
+class _Retimed(Sequence):
+    """``base`` with its timestamps replaced by ``timestamps``."""
+
+    def __init__(self, base: Sequence, timestamps: np.ndarray) -> None:
+        self.base, self._t = base, np.asarray(timestamps, dtype=np.float64)
+        self.name, self.camera, self.ground_truth, self.color = base.name, base.camera, None, False
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def __getitem__(self, i: int):
+        return dataclasses.replace(self.base[i], timestamp=float(self._t[i]))
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._t
+
+
+@pytest.mark.parametrize("speed", [1.0, 2.0])
+def test_threaded_run_takes_frames_no_faster_than_their_timestamps(seq, speed):
+    # A camera at 20 Hz, with the stream stopping for a minute before the last frame: each
+    # frame is taken no earlier than its time (divided by the speed) after the first, and
+    # the gap is waited for at most a second, the clock starting again from there.
+    t = np.arange(12) * 0.05
+    t[-1] = t[-2] + 60.0
+    c = Configs()
+    c = dataclasses.replace(c, threads=dataclasses.replace(c.threads, speed=speed))
+    system = System(seq.camera, c, sequential=False)
+    t0 = time.perf_counter()
+    summary = system.run(_Retimed(seq, t), progress=False)
+    wall = time.perf_counter() - t0
+    assert summary.frames == 12
+    started = np.asarray(system.frame_started) - system.frame_started[0]
+    assert np.all(started[:-1] >= (t[:-1] - t[0]) / speed - 0.002), (started, t)
+    assert started[-1] >= started[-2] + 0.9
+    assert wall < 30.0  # not the minute of the gap
+    assert system.stats()["threads"]["speed"] == speed
+    _assert_nothing_left()
+
+
+def test_speed_must_be_a_finite_non_negative_number(synth_replay_100, tmp_path):
+    with pytest.raises(ConfigError, match="threads.speed"):
+        ThreadsConfig(speed=-1.0)
+    with pytest.raises(ConfigError, match="threads.speed"):
+        ThreadsConfig(speed=float("nan"))
+    args = ["run", str(synth_replay_100), "--out", str(tmp_path / "x"), "--vocab", "none", "--no-loop",
+            "--no-progress", "--speed", "-2"]  # fmt: skip
+    assert main(args) == 2
+    assert not (tmp_path / "x" / "stats.json").exists()
 
 
 # --- the optimiser process -----------------------------------------------------------------

@@ -118,6 +118,20 @@ def describe_run(r: RunOutcome) -> str:
             f"{_num(r.fps, '{:.1f}')} fps")
 
 
+def _stages_text(threads: dict[str, Any] | None) -> str:
+    """How the stages ran, for the comparison's heading (empty when unknown)."""
+    if not threads:
+        return ""
+    if threads.get("sequential"):
+        return ", stages in order"
+    speed = threads.get("speed")
+    if speed is None:
+        return ", stages on threads"
+    if speed > 0:
+        return f", stages on threads, frames taken at {speed:g}x the rate of their timestamps"
+    return ", stages on threads, frames taken as fast as processed"
+
+
 def format_markdown(c: Comparison) -> str:
     """The summary table (one row per vocabulary) and the table of every run."""
     d = c.dataset
@@ -125,7 +139,7 @@ def format_markdown(c: Comparison) -> str:
         f"# Vocabulary comparison: {d['name']}",
         "",
         f"Dataset `{d['path']}` ({d['kind']}), {d['max_frames'] or 'all'} frames, {d['runs']} run(s) per vocabulary, "
-        "loop closing on. ATE: keyframe trajectory after Sim(3) alignment, RMSE per run.",
+        f"loop closing on{_stages_text(d.get('threads'))}. ATE: keyframe trajectory after Sim(3) alignment, RMSE per run.",
         "",
         "| vocabulary | runs ok | ATE median (mm) | ATE min (mm) | ATE max (mm) | loops closed (median) | "
         "frames lost (median) | fps (median) |",
@@ -162,6 +176,7 @@ def run_comparison(
     progress: bool = True,
     rerun_first: Sequence[str] | None = None,
     sequential: bool = False,
+    speed: float | None = None,
     run_fn: RunFn | None = None,
     on_run: Callable[[RunOutcome], None] | None = None,
 ) -> Comparison:
@@ -170,7 +185,9 @@ def run_comparison(
 
     rerun_first: ``--rerun`` tokens for the first run only (e.g. ``["save", "x.rrd"]``),
     used when :func:`run_dataset` accepts a ``rerun`` argument. sequential: run the stages
-    in order (then every run of a vocabulary gives the same figures). run_fn: replaces
+    in order (then every run of a vocabulary gives the same figures). speed: threaded runs
+    take frames no faster than this many times their timestamps' rate (None: the config's
+    ``threads.speed``; see :func:`run_dataset`). run_fn: replaces
     :func:`run_dataset` (same arguments), for tests. on_run: called with each run's
     outcome as soon as it is known (progress printing).
     """
@@ -183,16 +200,21 @@ def run_comparison(
         raise ConfigError(f"--runs must be at least 1, found {runs}")
     if not vocabs:
         raise ConfigError("--vocabs: give at least one vocabulary (orb, hgcn or a file)")
+    if speed is not None and not (np.isfinite(speed) and speed >= 0):
+        raise ConfigError(f"--speed must be a finite number >= 0 (0: no pacing), found {speed}")
     run_fn = run_fn or run_dataset
     params = inspect.signature(run_fn).parameters
     accepts_rerun = "rerun" in params
     common: dict[str, Any] = {"sequential": True} if sequential and "sequential" in params else {}
+    if speed is not None and "speed" in params:
+        common["speed"] = speed
     if rerun_first is not None and not accepts_rerun:
         log.warning("this build records no rerun visualisation of runs; --rerun ignored")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     outcomes: list[RunOutcome] = []
     name = Path(path).name
+    threads: dict[str, Any] | None = None  # how the stages ran, from the first run's stats
     for v in vocabs:
         for i in range(1, runs + 1):
             run_out = out / Path(v).stem / f"run{i}"
@@ -205,6 +227,7 @@ def run_comparison(
                                 progress=progress, vocab=v, **kw)
                 stats = json.loads(Path(report.paths["stats"]).read_text(encoding="utf-8"))
                 name = stats.get("dataset", {}).get("name", name)
+                threads = threads or stats.get("threads")
                 outcomes.append(outcome_from_stats(v, i, run_out, stats))
             except OrbslamError as exc:  # a failed run is reported in the table; the others go on
                 log.warning("vocabulary %s, run %d failed: %s", v, i, exc)
@@ -215,7 +238,7 @@ def run_comparison(
             if on_run is not None:
                 on_run(outcomes[-1])
     dataset = {"path": str(path), "kind": kind or "auto", "name": name, "max_frames": max_frames, "runs": runs,
-               "config": str(config) if config else None}
+               "config": str(config) if config else None, "threads": threads}
     comp = Comparison(dataset, outcomes, summarise(outcomes, list(vocabs)))
     md = format_markdown(comp)
     comp.paths = {"markdown": out / "compare.md", "json": out / "compare.json", "plot": out / "compare_ate.png"}

@@ -52,6 +52,7 @@ def run_demo(
     rerun: Sequence[str] | None = None,
     progress: bool = True,
     sequential: bool = False,
+    speed: float | None = None,
     echo: Callable[[str], None] = print,
 ) -> Comparison:
     """Render (or reuse) the demo sequence, run HGCN then ORB ``runs`` times each, print
@@ -59,6 +60,7 @@ def run_demo(
 
     rerun: ``--rerun`` tokens for the first run; None records ``OUT/demo.rrd``; an empty
     sequence records nothing. sequential: run the stages in order instead of in threads.
+    speed: how fast threaded runs take frames, relative to the sequence's 30 Hz (None: 1).
     """
     out = Path(out)
     seq = demo_sequence(cache, frames, progress)
@@ -70,7 +72,7 @@ def run_demo(
 
     comp = run_comparison(seq, out, kind="tum", runs=runs, vocabs=DEMO_VOCABS, progress=progress,
                           rerun_first=tokens or None, sequential=sequential,
-                          on_run=report)
+                          speed=speed, on_run=report)
     echo("")
     echo(format_markdown(comp))
     for path in comp.paths.values():

@@ -106,11 +106,14 @@ def run_dataset(
     save_map: str | Path | None = None,
     localization: bool = False,
     sequential: bool = False,
+    speed: float | None = None,
 ) -> RunReport:
     """Open a dataset, run the system over it, write the results into ``out``.
 
     ``sequential``: local mapping and loop closing in order after each frame (reproducible
-    results) instead of in worker threads.
+    results) instead of in worker threads. ``speed``: threaded runs take frames no faster
+    than this many times the rate of their timestamps (0: as fast as they are processed);
+    None: ``threads.speed`` of the config (default 1).
 
     ``rerun``: the ``--rerun`` tokens (``["spawn"]``, ``["save", "FILE.rrd"]``,
     ``["connect", "HOST:PORT"]``) to visualise the run in rerun as it goes
@@ -127,6 +130,8 @@ def run_dataset(
         if not p.is_file() and not p.suffix and (CONFIG_DIR / f"{p.name}.yaml").is_file():
             config = CONFIG_DIR / f"{p.name}.yaml"  # a shipped camera name such as tum_fr3
     configs = Configs.from_yaml(config)
+    if speed is not None:
+        configs = dataclasses.replace(configs, threads=dataclasses.replace(configs.threads, speed=speed))
     camera = camera_from_config(config)
     sequence = open_sequence(kind, path, camera)
     if max_frames is not None and max_frames < 1:

@@ -11,8 +11,11 @@ mapped and loop-checked before the next frame, so local mapping is always idle w
 tracker asks, and a run gives the same result every time. Threaded mode (the default of
 ``orbslam-hgcn run``): local mapping and loop closing run in worker threads as in ORB-SLAM,
 the tracker holds the map lock while it tracks a frame, and bundle adjustments are solved
-in child processes. :meth:`System.run` then reads images ahead on a reader thread and
-extracts the next frame's features in a child process while the current one is tracked.
+in child processes. :meth:`System.run` then reads images ahead on a reader thread,
+extracts the next frame's features in a child process while the current one is tracked,
+and takes frames no faster than their timestamps say a camera delivers them
+(``threads.speed``): local mapping makes keyframes when it is free, so a run faster than
+the camera would map with fewer keyframes, the fewer the faster the machine.
 On a machine with few cores the real-time path goes first: the BA processes and the worker
 threads run at a lower CPU priority (``threads.solver_nice``, ``threads.worker_nice``).
 Threads and processes live from the first frame to :meth:`System.close`,
@@ -119,19 +122,49 @@ class Features:
     ms: float
 
 
+class _Pacer:
+    """Holds frames back until a camera running at ``speed`` times the rate of their
+    timestamps would have delivered them (``ThreadsConfig.speed``; 0: never waits).
+
+    The clock starts at the first frame. A wait longer than ``max_wait_s`` (a gap in the
+    timestamps) is cut to that, and the clock starts again from that frame. A frame already
+    due is handed out at once: a system behind its camera is not slowed further. ``halt``
+    ends a wait early (shutdown).
+    """
+
+    def __init__(self, speed: float, halt: threading.Event, max_wait_s: float = 1.0) -> None:
+        self.speed, self.halt, self.max_wait_s = float(speed), halt, max_wait_s
+        self._anchor: tuple[float, float] | None = None  # (perf_counter, timestamp)
+
+    def wait(self, timestamp: float) -> None:
+        if self.speed <= 0 or not np.isfinite(timestamp):
+            return
+        now = time.perf_counter()
+        if self._anchor is None:
+            self._anchor = (now, timestamp)
+            return
+        wait = self._anchor[0] + (timestamp - self._anchor[1]) / self.speed - now
+        if wait > self.max_wait_s:
+            self._anchor = (now + self.max_wait_s, timestamp)
+            wait = self.max_wait_s
+        if wait > 0:
+            self.halt.wait(wait)
+
+
 class _Prefetch:
     """Reads frames ahead of tracking and extracts the features of frame i + 1 while frame
     i is tracked (threaded mode of :meth:`System.run`).
 
     A reader thread decodes up to ``ahead`` frames in order (one reader: video files need
-    it); an error reading a frame is raised when that frame is taken. Extraction runs on a
-    thread of its own, or in the system's extraction process when it has one. The
-    extractor is chosen from the tracker's state when the job starts; if the state has
-    changed when the frame is processed, :meth:`System.process` extracts again.
+    it); an error reading a frame is raised when that frame is taken. A frame's job starts
+    once the pacer hands it out. Extraction runs on a thread of its own, or in the system's
+    extraction process when it has one. The extractor is chosen from the tracker's state
+    when the job starts; if the state has changed when the frame is processed,
+    :meth:`System.process` extracts again.
     """
 
-    def __init__(self, system: System, sequence: Sequence, n: int, ahead: int = 4) -> None:
-        self.system, self.sequence, self.n = system, sequence, n
+    def __init__(self, system: System, sequence: Sequence, n: int, pacer: _Pacer, ahead: int = 4) -> None:
+        self.system, self.sequence, self.n, self.pacer = system, sequence, n, pacer
         self._records: queue.Queue = queue.Queue(maxsize=ahead)
         self._stop = threading.Event()
         self._reader = threading.Thread(target=self._read, name="orbslam-reader", daemon=True)
@@ -158,6 +191,7 @@ class _Prefetch:
         rec, exc = self._records.get()
         if exc is not None:
             raise exc
+        self.pacer.wait(rec.timestamp)
         extractor = self.system._extractor_now()
         t0 = time.perf_counter()
         kps = self.system._extract(rec.image, extractor, remote=True)
@@ -173,6 +207,7 @@ class _Prefetch:
         return out
 
     def close(self) -> None:
+        self.pacer.halt.set()  # a job waiting for its frame's time goes on at once
         if self._next is not None:
             self._next[1].cancel()
             self._next = None
@@ -415,6 +450,9 @@ class System:
         t0 = time.perf_counter()
         done, interrupted = 0, False
         threads = self.configs.threads
+        # Threaded runs take frames no faster than the camera would deliver them; sequential
+        # runs give the same result at any pace.
+        pacer = _Pacer(0.0 if self.sequential else threads.speed, threading.Event())
         prefetch = None
         if not self.sequential and threads.prefetch:
             if threads.extraction_process and self._extraction is None:
@@ -422,10 +460,14 @@ class System:
                     {name: e.config for name, e in self._extractor_names.items()}, self.camera
                 )
                 self._extraction.start()  # before the reader takes the first frame
-            prefetch = _Prefetch(self, sequence, n)
+            prefetch = _Prefetch(self, sequence, n, pacer)
         try:
             for i in range(n):
-                rec, features = prefetch.take(i) if prefetch is not None else (sequence[i], None)
+                if prefetch is not None:
+                    rec, features = prefetch.take(i)
+                else:
+                    rec, features = sequence[i], None
+                    pacer.wait(rec.timestamp)
                 t_frame = time.perf_counter()
                 result = self.process(rec.image, rec.timestamp, rec.index, features)
                 if self.observers:
@@ -480,7 +522,11 @@ class System:
             "map_points": self.map.n_points(),
             "map_resets": self.n_resets,
             "final_state": self.tracker.state.value,
-            "threads": {"sequential": self.sequential, "process_solver": self.configs.threads.process_solver},
+            "threads": {
+                "sequential": self.sequential,
+                "process_solver": self.configs.threads.process_solver,
+                "speed": 0.0 if self.sequential else self.configs.threads.speed,
+            },
             "events": self.events,
             "timing_ms": {
                 "extraction_per_frame": summary_ms(self.timings["extraction"]),
