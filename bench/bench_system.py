@@ -18,7 +18,8 @@ latency (from the start of the frame's ORB extraction to the end of its tracking
 handing keyframes over; in threaded mode the extraction runs on the prefetch thread while
 the previous frame is tracked, so the latency also holds the wait for that frame): median,
 p95, max, over all frames and over the frames during which a bundle adjustment or pose
-graph was being solved; map-lock waits; local mapping per keyframe; ATE after Sim(3)
+graph was being solved; map-lock waits; waits for local mapping to take a keyframe that
+is due (``threads.keyframe_wait_s``); local mapping per keyframe; ATE after Sim(3)
 alignment; peak RSS of the process and of its children (the BA and extraction processes; with
 ``--preload`` the children's figure also counts the parent's pages at fork time, so quote
 memory from runs without it). ``--profile`` runs the tracking thread under cProfile and
@@ -198,6 +199,7 @@ def run_one(
         "extraction": _summary(system.timings["extraction"]),
         "tracking": _summary(system.timings["tracking"]),
         "lock_wait": _summary(system.timings["lock_wait"]),
+        "keyframe_wait": _summary(system.timings["keyframe_wait"]),
         "mapping_total": _summary(mt.get("total", [])),
         "mapping_steps": {k: _summary(v) for k, v in mt.items() if k not in ("total", "total_cpu", "local_ba_cpu")},
         "mapping_counts": stats["mapping_counts"],
@@ -243,6 +245,10 @@ def report(r: dict) -> None:
     print(f"  extraction:                          {_fmt(r['extraction'])}")
     print(f"  tracking:                            {_fmt(r['tracking'])}")
     print(f"  map lock wait:                       {_fmt(r['lock_wait'])}")
+    if r.get("keyframe_wait", {}).get("n"):
+        w = r["keyframe_wait"]
+        print(f"  waits for local mapping to take a due keyframe: {w['n']}, median {w['median']:.1f} ms, "
+              f"max {w['max']:.1f} ms")
     print(f"local mapping ms/keyframe:             {_fmt(r['mapping_total'])}")
     for k, v in r["mapping_steps"].items():
         print(f"  {k:<35}  {_fmt(v)}")

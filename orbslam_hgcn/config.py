@@ -640,7 +640,15 @@ class ThreadsConfig:
     # mapping makes a keyframe whenever it is free, so a run that outruns the camera gets
     # fewer keyframes, and more so on a faster machine. 0: as fast as frames are processed.
     speed: float = 1.0
+    # Threaded only: when a keyframe has been due for a camera-second (ORB-SLAM's c1a and
+    # c2) and only a busy local mapping keeps the tracker from making it, wait up to this
+    # many seconds after the frame for mapping to accept one (0: never; ORB-SLAM does not
+    # wait). At the camera's rate mapping rarely falls that far behind; a run faster than
+    # the camera would otherwise outrun it until tracking is lost.
+    keyframe_wait_s: float = 0.5
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed) and self.speed >= 0):
             raise ConfigError(f"threads.speed: must be a finite number >= 0 (0: no pacing), found {self.speed!r}")
+        if not (math.isfinite(self.keyframe_wait_s) and self.keyframe_wait_s >= 0):
+            raise ConfigError(f"threads.keyframe_wait_s: must be a finite number >= 0, found {self.keyframe_wait_s!r}")

@@ -171,6 +171,21 @@ def test_cli_run_is_threaded_unless_sequential(synth_replay_100, tmp_path):
         _assert_nothing_left()
 
 
+def test_tracker_waits_for_busy_mapping_only_as_long_as_asked():
+    mapper = _SlowMapper()
+    stages = ThreadedStages(mapper, None, process_solver=False)
+    try:
+        for i in range(4):
+            stages.submit(_StubKeyFrame(i))
+        assert not stages.mapping_idle()
+        assert not stages.wait_for_mapping(0.01)  # 4 keyframes of 30 ms still to map
+        assert stages.wait_for_mapping(5.0)
+        assert mapper.done == [0, 1, 2, 3] and stages.mapping_idle()
+    finally:
+        stages.close()
+    _assert_nothing_left()
+
+
 class _Retimed(Sequence):
     """``base`` with its timestamps replaced by ``timestamps``."""
 
@@ -211,11 +226,13 @@ def test_threaded_run_takes_frames_no_faster_than_their_timestamps(seq, speed):
     _assert_nothing_left()
 
 
-def test_speed_must_be_a_finite_non_negative_number(synth_replay_100, tmp_path):
+def test_speed_and_keyframe_wait_must_be_finite_non_negative_numbers(synth_replay_100, tmp_path):
     with pytest.raises(ConfigError, match="threads.speed"):
         ThreadsConfig(speed=-1.0)
     with pytest.raises(ConfigError, match="threads.speed"):
         ThreadsConfig(speed=float("nan"))
+    with pytest.raises(ConfigError, match="threads.keyframe_wait_s"):
+        ThreadsConfig(keyframe_wait_s=-0.1)
     args = ["run", str(synth_replay_100), "--out", str(tmp_path / "x"), "--vocab", "none", "--no-loop",
             "--no-progress", "--speed", "-2"]  # fmt: skip
     assert main(args) == 2

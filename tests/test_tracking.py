@@ -17,7 +17,7 @@ from orbslam_hgcn.mapping.local_mapper import LocalMapper
 from orbslam_hgcn.tracking import motion
 from orbslam_hgcn.tracking.frame_ops import orthonormalize, project, resolve_points
 from orbslam_hgcn.tracking.initializer import MonocularInitializer
-from orbslam_hgcn.tracking.keyframe_decision import KeyFrameQuery, need_new_keyframe
+from orbslam_hgcn.tracking.keyframe_decision import KeyFrameQuery, keyframe_starved, need_new_keyframe
 from orbslam_hgcn.tracking.tracker import Tracker, TrackingState
 from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
 
@@ -191,6 +191,13 @@ def test_keyframe_rules():
     strict = TrackingConfig(min_frames=10)
     assert not need_new_keyframe(KeyFrameQuery(**base), strict)  # c1b needs 10 frames
     assert need_new_keyframe(KeyFrameQuery(**{**base, "last_kf_frame_id": 70}), strict)  # c1a: fps frames
+    # Starved: a keyframe is due by c1a (a camera-second since the last) and c2, and only a
+    # busy local mapping stops it.
+    busy = {**base, "mapping_idle": False}
+    assert keyframe_starved(KeyFrameQuery(**{**busy, "last_kf_frame_id": 70}), cfg)
+    assert not keyframe_starved(KeyFrameQuery(**busy), cfg)  # only 5 frames since the last
+    assert not keyframe_starved(KeyFrameQuery(**{**base, "last_kf_frame_id": 70}), cfg)  # mapping takes it
+    assert not keyframe_starved(KeyFrameQuery(**{**busy, "last_kf_frame_id": 70, "n_inliers": 190}), cfg)  # c2
 
 
 def test_orthonormalize_and_resolve_points():

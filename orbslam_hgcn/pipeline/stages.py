@@ -119,6 +119,10 @@ class SequentialStages:
         """Nothing runs beside the tracker."""
         yield
 
+    def wait_for_mapping(self, timeout_s: float) -> bool:
+        """Local mapping is idle already."""
+        return True
+
     def submit(self, kf: KeyFrame) -> None:
         out = self.mapper.process(kf)
         if out is not None and self.loop_closer is not None:
@@ -189,6 +193,18 @@ class ThreadedStages:
         if not w.busy:
             return True
         return bool(self.mapper.in_ba) and w.pending == 0
+
+    def wait_for_mapping(self, timeout_s: float, poll_s: float = 0.002) -> bool:
+        """Wait until local mapping accepts a keyframe (:meth:`mapping_idle`: idle, or in
+        a local BA that the next keyframe will cut short), at most ``timeout_s``; True
+        when it does. Returns False at once during a pause or the shutdown."""
+        deadline = time.perf_counter() + timeout_s
+        while not self.mapping_idle():
+            if self._paused or self._stopping or time.perf_counter() >= deadline:
+                return False
+            self.check()
+            time.sleep(poll_s)
+        return True
 
     @contextlib.contextmanager
     def handover(self) -> Iterator[None]:

@@ -277,7 +277,7 @@ class System:
         )
         self.mapper = LocalMapper(self.map, c.local_mapping, c.backend, vocabulary=vocabulary)
         self.timings: dict[str, list[float]] = {
-            "extraction": [], "tracking": [], "tracking_cpu": [], "frame": [], "lock_wait": [],
+            "extraction": [], "tracking": [], "tracking_cpu": [], "frame": [], "lock_wait": [], "keyframe_wait": [],
         }  # fmt: skip
         # Per frame of timings["frame"]: whether a BA or pose graph was being solved during it,
         # and when (time.perf_counter) the frame's extraction started.
@@ -406,6 +406,10 @@ class System:
         if result.reset:
             for kf in result.new_keyframes:
                 self._on_keyframe(kf)
+        if result.keyframe_starved and self.configs.threads.keyframe_wait_s > 0:
+            t2 = time.perf_counter()
+            stages.wait_for_mapping(self.configs.threads.keyframe_wait_s)
+            self.timings["keyframe_wait"].append(1000.0 * (time.perf_counter() - t2))
         self.timings["frame"].append(1000.0 * (time.perf_counter() - t0))
         self.frame_started.append(t0)
         optimising = optimising or stages.optimising or stages.activity.started != started
@@ -535,6 +539,7 @@ class System:
                 "frame_total": summary_ms(self.timings["frame"]),
                 "frame_total_while_optimising": summary_ms(np.asarray(self.timings["frame"])[opt]),
                 "map_lock_wait_per_frame": summary_ms(self.timings["lock_wait"]),
+                "keyframe_wait": summary_ms(self.timings["keyframe_wait"]),
                 "local_mapping_per_keyframe": summary_ms(mt.get("total", [])),
                 "local_mapping_cpu_per_keyframe": summary_ms(mt.get("total_cpu", [])),
                 "local_ba_per_keyframe": summary_ms(mt.get("local_ba", [])),

@@ -52,14 +52,27 @@ def max_frames(config: TrackingConfig, fps: float) -> int:
     return config.max_frames if config.max_frames > 0 else max(1, int(round(fps)))
 
 
-def need_new_keyframe(q: KeyFrameQuery, config: TrackingConfig) -> bool:
-    """True when ORB-SLAM's monocular keyframe rules ask for a keyframe."""
+def _conditions(q: KeyFrameQuery, config: TrackingConfig) -> tuple[bool, bool, bool]:
+    """(c1a, c1b, c2); all False within the frames after a relocalisation."""
     n_max = max_frames(config, q.fps)
     if q.last_reloc_frame_id >= 0 and q.frame_id < q.last_reloc_frame_id + n_max and q.n_keyframes > n_max:
-        return False
+        return False, False, False
     c1a = q.frame_id >= q.last_kf_frame_id + n_max
     c1b = q.frame_id >= q.last_kf_frame_id + config.min_frames and q.mapping_idle
     c2 = q.n_inliers < q.ref_tracked * config.ref_ratio and q.n_inliers > config.keyframe_min_inliers
+    return c1a, c1b, c2
+
+
+def need_new_keyframe(q: KeyFrameQuery, config: TrackingConfig) -> bool:
+    """True when ORB-SLAM's monocular keyframe rules ask for a keyframe."""
+    c1a, c1b, c2 = _conditions(q, config)
     # ORB-SLAM2 interrupts a running local BA and waits when mapping is busy; the caller
     # decides again on the next frame.
     return bool((c1a or c1b) and c2 and q.mapping_idle)
+
+
+def keyframe_starved(q: KeyFrameQuery, config: TrackingConfig) -> bool:
+    """True when the rules ask for a keyframe by c1a (``max_frames`` frames, a second of
+    camera time, since the last one) and c2, and only a busy local mapping stops it."""
+    c1a, _, c2 = _conditions(q, config)
+    return bool(c1a and c2 and not q.mapping_idle)

@@ -44,6 +44,7 @@ from orbslam_hgcn.tracking.frame_ops import (
 from orbslam_hgcn.tracking.initializer import InitialMap, MonocularInitializer
 from orbslam_hgcn.tracking.keyframe_decision import (
     KeyFrameQuery,
+    keyframe_starved,
     max_frames,
     min_observations,
     need_new_keyframe,
@@ -92,6 +93,9 @@ class TrackResult:
     initialized: bool = False
     lost: bool = False  # tracking was lost on this frame
     reset: bool = False  # the map was discarded on this frame (tracker.map is a new one)
+    # A keyframe was due by the rules (keyframe_decision.keyframe_starved) but local mapping
+    # was busy: the caller may let mapping catch up before the next frame.
+    keyframe_starved: bool = False
     time_ms: float = 0.0  # wall-clock time of track()
     cpu_ms: float = 0.0  # CPU time of the process in track()
 
@@ -248,7 +252,7 @@ class Tracker:
             self.state = TrackingState.OK
             if self.last_frame is not None and self.last_frame.T_cw is not None:
                 self.velocity = orthonormalize(frame.T_cw @ inv_T(self.last_frame.T_cw))
-            kf = self._maybe_keyframe(frame, n_in)
+            kf, result.keyframe_starved = self._maybe_keyframe(frame, n_in)
             if kf is not None:
                 result.new_keyframes.append(kf)
             discard_outliers(frame)
@@ -322,9 +326,10 @@ class Tracker:
             return n_in >= cfg.min_inliers_relocalised, n_in
         return n_in >= cfg.min_inliers, n_in
 
-    def _maybe_keyframe(self, frame: Frame, n_in: int) -> KeyFrame | None:
+    def _maybe_keyframe(self, frame: Frame, n_in: int) -> tuple[KeyFrame | None, bool]:
+        """(the new keyframe or None, whether one was due but local mapping was busy)."""
         if self.localization:
-            return None
+            return None, False
         m = self.map
         n_kfs = m.n_keyframes()
         ref_id = good_keyframe(m, self.ref_kf_id)
@@ -340,7 +345,7 @@ class Tracker:
             fps=frame.camera.fps,
         )
         if not need_new_keyframe(q, self.config):
-            return None
+            return None, keyframe_starved(q, self.config)
         keep = frame.point_ids >= 0
         if not self.config.keyframe_keeps_outliers:
             keep &= ~frame.outlier
@@ -351,7 +356,7 @@ class Tracker:
             m.add_observations(kf.id, frame.point_ids[slots[good]], slots[good])
         self.ref_kf_id = kf.id
         self.last_kf_frame_id = frame.id
-        return kf
+        return kf, False
 
     # --- trajectory records ------------------------------------------------------------
     def _record(self, frame_id: int, timestamp: float, frame: Frame | None) -> None:
