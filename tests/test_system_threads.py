@@ -171,21 +171,6 @@ def test_cli_run_is_threaded_unless_sequential(synth_replay_100, tmp_path):
         _assert_nothing_left()
 
 
-def test_tracker_waits_for_busy_mapping_only_as_long_as_asked():
-    mapper = _SlowMapper()
-    stages = ThreadedStages(mapper, None, process_solver=False)
-    try:
-        for i in range(4):
-            stages.submit(_StubKeyFrame(i))
-        assert not stages.mapping_idle()
-        assert not stages.wait_for_mapping(0.01)  # 4 keyframes of 30 ms still to map
-        assert stages.wait_for_mapping(5.0)
-        assert mapper.done == [0, 1, 2, 3] and stages.mapping_idle()
-    finally:
-        stages.close()
-    _assert_nothing_left()
-
-
 class _Retimed(Sequence):
     """``base`` with its timestamps replaced by ``timestamps``."""
 
@@ -462,6 +447,21 @@ def test_pausing_mapping_first_maps_every_keyframe_handed_over():
             stages.pause_mapping(False)
         t.join()
         assert stages.mapping_idle()
+    finally:
+        stages.close()
+    _assert_nothing_left()
+
+
+def test_tracker_waits_for_busy_mapping_only_as_long_as_asked():
+    mapper = _SlowMapper()
+    stages = ThreadedStages(mapper, None, process_solver=False)
+    try:
+        for i in range(4):
+            stages.submit(_StubKeyFrame(i))
+        assert not stages.mapping_idle()
+        assert not stages.wait_for_mapping(0.01)  # 4 keyframes of 30 ms still to map
+        assert stages.wait_for_mapping(5.0)
+        assert mapper.done == [0, 1, 2, 3] and stages.mapping_idle()
     finally:
         stages.close()
     _assert_nothing_left()
