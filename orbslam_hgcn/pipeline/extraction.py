@@ -38,9 +38,11 @@ class Extractors:
         cv2.setNumThreads(1)
         self.extractors = {name: ORBExtractor(c) for name, c in configs.items()}
         self.camera = camera
-        # Load the compiled kernels of the extractor now rather than inside the first frame.
-        noise = np.random.default_rng(0).integers(0, 256, (120, 160), dtype=np.uint8)
-        for extractor in list(self.extractors.values())[:1]:
+        # Load the compiled kernels, and build the pyramid tables of the camera's image size
+        # (about 60 ms at 640x480, once per process), now rather than inside the first frame.
+        size = (camera.height, camera.width) if camera.width > 0 and camera.height > 0 else (120, 160)
+        noise = np.random.default_rng(0).integers(0, 256, size, dtype=np.uint8)
+        for extractor in self.extractors.values():
             extractor.extract(noise)
 
     def extract(self, name: str, image: np.ndarray) -> tuple[KeypointSet, float]:

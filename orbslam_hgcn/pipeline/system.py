@@ -350,6 +350,11 @@ class System:
         initializing = self.tracker.state == TrackingState.NOT_INITIALIZED
         return self.init_extractor if initializing else self.extractor
 
+    def _warm_local_extractor(self) -> None:
+        c = self.camera
+        size = (c.height, c.width) if c.width > 0 and c.height > 0 else (120, 160)
+        self.extractor.extract(np.random.default_rng(0).integers(0, 256, size, dtype=np.uint8))
+
     def _extract(self, image: np.ndarray, extractor: ORBExtractor, remote: bool = False) -> KeypointSet:
         """Keypoints of ``image`` by ``extractor``; with ``remote``, in the extraction
         process when the system has one."""
@@ -463,7 +468,13 @@ class System:
                 self._extraction = ExtractionProcess(
                     {name: e.config for name, e in self._extractor_names.items()}, self.camera
                 )
+                # The frame on which the tracker's state changes is extracted again in this
+                # process (process()); load that extractor's kernels and build its pyramid
+                # tables here, while the child starts, rather than inside that frame.
+                warm = threading.Thread(target=self._warm_local_extractor, name="orbslam-warm", daemon=True)
+                warm.start()
                 self._extraction.start()  # before the reader takes the first frame
+                warm.join()
             prefetch = _Prefetch(self, sequence, n, pacer)
         try:
             for i in range(n):
