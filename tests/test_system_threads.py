@@ -412,56 +412,58 @@ class _SlowMapper:
         return None
 
 
-def test_pausing_mapping_first_maps_every_keyframe_handed_over():
+@pytest.fixture
+def slow_stages():
+    """Threaded stages over a :class:`_SlowMapper`, closed (and checked) afterwards."""
+    mapper = _SlowMapper()
+    stages = ThreadedStages(mapper, None, process_solver=False)
+    try:
+        yield mapper, stages
+    finally:
+        stages.close()
+    _assert_nothing_left()
+
+
+def test_pausing_mapping_first_maps_every_keyframe_handed_over(slow_stages):
     # A loop correction moves the keyframes of the map; one still waiting in local
     # mapping's queue has no spanning-tree parent and no connections yet, so it would keep
     # its uncorrected pose. As in ORB-SLAM, a pause first maps the queued keyframes, and a
     # keyframe handed over by a frame being tracked when the pause is asked is waited for.
-    mapper = _SlowMapper()
-    stages = ThreadedStages(mapper, None, process_solver=False)
+    mapper, stages = slow_stages
+    for i in range(3):
+        stages.submit(_StubKeyFrame(i))
+    stages.pause_mapping(True)
     try:
-        for i in range(3):
-            stages.submit(_StubKeyFrame(i))
-        stages.pause_mapping(True)
-        try:
-            assert mapper.done == [0, 1, 2]
-            assert not stages.mapping_idle()  # the tracker makes no keyframe meanwhile
-        finally:
-            stages.pause_mapping(False)
-
-        handed = threading.Event()
-
-        def frame_in_flight():
-            with stages.handover():
-                handed.set()
-                time.sleep(0.05)  # tracking the frame
-                stages.submit(_StubKeyFrame(3))
-
-        t = threading.Thread(target=frame_in_flight)
-        t.start()
-        handed.wait()
-        stages.pause_mapping(True)
-        try:
-            assert mapper.done == [0, 1, 2, 3]
-        finally:
-            stages.pause_mapping(False)
-        t.join()
-        assert stages.mapping_idle()
+        assert mapper.done == [0, 1, 2]
+        assert not stages.mapping_idle()  # the tracker makes no keyframe meanwhile
     finally:
-        stages.close()
-    _assert_nothing_left()
+        stages.pause_mapping(False)
 
+    handed = threading.Event()
 
-def test_tracker_waits_for_busy_mapping_only_as_long_as_asked():
-    mapper = _SlowMapper()
-    stages = ThreadedStages(mapper, None, process_solver=False)
+    def frame_in_flight():
+        with stages.handover():
+            handed.set()
+            time.sleep(0.05)  # tracking the frame
+            stages.submit(_StubKeyFrame(3))
+
+    t = threading.Thread(target=frame_in_flight)
+    t.start()
+    handed.wait()
+    stages.pause_mapping(True)
     try:
-        for i in range(4):
-            stages.submit(_StubKeyFrame(i))
-        assert not stages.mapping_idle()
-        assert not stages.wait_for_mapping(0.01)  # 4 keyframes of 30 ms still to map
-        assert stages.wait_for_mapping(5.0)
-        assert mapper.done == [0, 1, 2, 3] and stages.mapping_idle()
+        assert mapper.done == [0, 1, 2, 3]
     finally:
-        stages.close()
-    _assert_nothing_left()
+        stages.pause_mapping(False)
+    t.join()
+    assert stages.mapping_idle()
+
+
+def test_tracker_waits_for_busy_mapping_only_as_long_as_asked(slow_stages):
+    mapper, stages = slow_stages
+    for i in range(4):
+        stages.submit(_StubKeyFrame(i))
+    assert not stages.mapping_idle()
+    assert not stages.wait_for_mapping(0.01)  # 4 keyframes of 30 ms still to map
+    assert stages.wait_for_mapping(5.0)
+    assert mapper.done == [0, 1, 2, 3] and stages.mapping_idle()

@@ -82,10 +82,10 @@ def run_global_ba(
 def _refine_on_optimised_points(m: Map, kf_id: int, T_cw: np.ndarray, optimised: np.ndarray,
                                 cfg: BackendConfig) -> np.ndarray | None:
     """Motion-only BA of keyframe ``kf_id`` from ``T_cw`` on the points of ``optimised``
-    (sorted ids) it observes; None when too few of them, or too few inliers."""
+    (ids) it observes; None when too few of them, or too few inliers."""
     kf = m.keyframe(kf_id)
     slots, pids = kf.observed_points()
-    use = np.isin(pids, optimised, assume_unique=False) & ~m.point_arrays(pids).bad
+    use = np.isin(pids, optimised) & ~m.point_arrays(pids).bad
     if int(use.sum()) < cfg.pose_min_inliers:
         return None
     slots, pids = slots[use], pids[use]
@@ -96,7 +96,6 @@ def _refine_on_optimised_points(m: Map, kf_id: int, T_cw: np.ndarray, optimised:
 
 def _write_back(m: Map, w: BAWindow, res: BAResult, cfg: BackendConfig) -> GlobalBAResult:
     out = GlobalBAResult(len(w.kf_ids), len(w.point_ids))
-    optimised = np.sort(np.asarray(w.point_ids, dtype=np.int64))
     with m.lock:
         in_window = set(w.kf_ids.tolist())
         before = {kf.id: kf.T_cw.copy() for kf in m.keyframes()}
@@ -113,7 +112,7 @@ def _write_back(m: Map, w: BAWindow, res: BAResult, cfg: BackendConfig) -> Globa
                 if c not in new_T:
                     T_cp = before[c] @ np.linalg.inv(before[k])
                     new_T[c] = T_cp @ new_T[k]
-                    refined = _refine_on_optimised_points(m, c, new_T[c], optimised, cfg)
+                    refined = _refine_on_optimised_points(m, c, new_T[c], w.point_ids, cfg)
                     if refined is not None:
                         new_T[c] = refined
                         out.n_keyframes_refined += 1

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from orbslam_hgcn.config import ThreadsConfig
 from orbslam_hgcn.errors import ConfigError, OrbslamError
 
 log = logging.getLogger(__name__)
@@ -200,8 +201,8 @@ def run_comparison(
         raise ConfigError(f"--runs must be at least 1, found {runs}")
     if not vocabs:
         raise ConfigError("--vocabs: give at least one vocabulary (orb, hgcn or a file)")
-    if speed is not None and not (np.isfinite(speed) and speed >= 0):
-        raise ConfigError(f"--speed must be a finite number >= 0 (0: no pacing), found {speed}")
+    if speed is not None:
+        ThreadsConfig(speed=speed)  # a bad value is a ConfigError here, not in every run
     run_fn = run_fn or run_dataset
     params = inspect.signature(run_fn).parameters
     accepts_rerun = "rerun" in params

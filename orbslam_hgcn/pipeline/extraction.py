@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterable
 
 import cv2
 import numpy as np
@@ -29,6 +30,16 @@ class ExtractionError(RuntimeError):
     """The extraction process failed or died; the message carries its traceback."""
 
 
+def warm_up_extractors(extractors: Iterable[ORBExtractor], camera: PinholeCamera) -> None:
+    """Run each extractor once on noise of the camera's image size: this loads the compiled
+    kernels and builds the pyramid tables of that size (about 60 ms at 640x480, once per
+    process) before the first frame rather than inside it."""
+    size = (camera.height, camera.width) if camera.width > 0 and camera.height > 0 else (120, 160)
+    noise = np.random.default_rng(0).integers(0, 256, size, dtype=np.uint8)
+    for extractor in extractors:
+        extractor.extract(noise)
+
+
 class Extractors:
     """ORB extractors by name over one camera: the object the child process serves."""
 
@@ -38,12 +49,7 @@ class Extractors:
         cv2.setNumThreads(1)
         self.extractors = {name: ORBExtractor(c) for name, c in configs.items()}
         self.camera = camera
-        # Load the compiled kernels, and build the pyramid tables of the camera's image size
-        # (about 60 ms at 640x480, once per process), now rather than inside the first frame.
-        size = (camera.height, camera.width) if camera.width > 0 and camera.height > 0 else (120, 160)
-        noise = np.random.default_rng(0).integers(0, 256, size, dtype=np.uint8)
-        for extractor in self.extractors.values():
-            extractor.extract(noise)
+        warm_up_extractors(self.extractors.values(), camera)
 
     def extract(self, name: str, image: np.ndarray) -> tuple[KeypointSet, float]:
         """Keypoints of a (H, W) uint8 image by extractor ``name``, and the time it took (ms)."""

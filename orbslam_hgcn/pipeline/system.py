@@ -63,7 +63,7 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.loop.closer import LoopCloser
 from orbslam_hgcn.map import Frame, KeyFrame, Map
 from orbslam_hgcn.mapping.local_mapper import LocalMapper
-from orbslam_hgcn.pipeline.extraction import ExtractionProcess
+from orbslam_hgcn.pipeline.extraction import ExtractionProcess, warm_up_extractors
 from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
 from orbslam_hgcn.pipeline.stages import SequentialStages, ThreadedStages
 from orbslam_hgcn.pipeline.results import (
@@ -350,11 +350,6 @@ class System:
         initializing = self.tracker.state == TrackingState.NOT_INITIALIZED
         return self.init_extractor if initializing else self.extractor
 
-    def _warm_local_extractor(self) -> None:
-        c = self.camera
-        size = (c.height, c.width) if c.width > 0 and c.height > 0 else (120, 160)
-        self.extractor.extract(np.random.default_rng(0).integers(0, 256, size, dtype=np.uint8))
-
     def _extract(self, image: np.ndarray, extractor: ORBExtractor, remote: bool = False) -> KeypointSet:
         """Keypoints of ``image`` by ``extractor``; with ``remote``, in the extraction
         process when the system has one."""
@@ -471,7 +466,9 @@ class System:
                 # The frame on which the tracker's state changes is extracted again in this
                 # process (process()); load that extractor's kernels and build its pyramid
                 # tables here, while the child starts, rather than inside that frame.
-                warm = threading.Thread(target=self._warm_local_extractor, name="orbslam-warm", daemon=True)
+                warm = threading.Thread(
+                    target=warm_up_extractors, args=([self.extractor], self.camera), name="orbslam-warm", daemon=True
+                )
                 warm.start()
                 self._extraction.start()  # before the reader takes the first frame
                 warm.join()
