@@ -321,7 +321,7 @@ def _run_run(args: argparse.Namespace) -> int:
 
 @subcommand
 def _add_vocab(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("vocab", help="train or inspect a visual vocabulary (HGCN or DBoW2-style ORB tree)")
+    p = sub.add_parser("vocab", help="train, inspect or export a visual vocabulary (HGCN or DBoW2-style ORB tree)")
     vsub = p.add_subparsers(dest="vocab_command", metavar="ACTION", required=True)
     t = vsub.add_parser("train", help="train a vocabulary from images")
     t.add_argument("--kind", choices=("hgcn", "orb"), required=True, help="vocabulary kind")
@@ -347,6 +347,12 @@ def _add_vocab(sub: argparse._SubParsersAction) -> None:
     i = vsub.add_parser("info", help="print a vocabulary's metadata")
     i.add_argument("file", help="vocabulary file, or 'orb' / 'hgcn' for the shipped default")
     i.set_defaults(func=_run_vocab_info)
+    e = vsub.add_parser("export", help="write an ORB-tree vocabulary as a DBoW2 text file (ORB-SLAM2/3's ORBvoc.txt)")
+    e.add_argument("file", help="ORB-tree vocabulary file, or 'orb' for the shipped default")
+    e.add_argument("--format", choices=("dbow2",), default="dbow2",
+                   help="dbow2: DBoW2's text format, as TemplatedVocabulary::loadFromTextFile reads it")
+    e.add_argument("--out", required=True, help="output file (e.g. ORBvoc.txt)")
+    e.set_defaults(func=_run_vocab_export)
 
 
 def _run_vocab_train(args: argparse.Namespace) -> int:
@@ -381,6 +387,16 @@ def _run_vocab_info(args: argparse.Namespace) -> int:
 
     vocab = load_vocabulary(args.file)
     print(vocab.metadata.describe())
+    return 0
+
+
+def _run_vocab_export(args: argparse.Namespace) -> int:
+    from orbslam_hgcn.vocabulary import load_vocabulary
+    from orbslam_hgcn.vocabulary.dbow2 import write_dbow2_text
+
+    vocab = load_vocabulary(args.file)
+    out = write_dbow2_text(vocab, args.out)
+    print(f"wrote {out} ({args.format}: {vocab.n_words} words, {len(vocab.parent)} nodes)")
     return 0
 
 

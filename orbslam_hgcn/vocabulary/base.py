@@ -221,12 +221,20 @@ class Vocabulary(abc.ABC):
 def load_vocabulary(path: str | Path, expected_kind: str | None = None) -> Vocabulary:
     """Load any vocabulary file, dispatching on its kind.
 
-    path: a vocabulary file, or the name ``orb`` / ``hgcn`` for the shipped default.
+    path: a vocabulary file (``.npz``, or a DBoW2 text file such as ORB-SLAM's ``ORBvoc.txt``,
+    told by a ``.txt`` name or a first line of four integers), or the name ``orb`` / ``hgcn``
+    for the shipped default.
     expected_kind: if given, a file of another kind is a VocabularyError.
     """
     path = Path(path)
     if not path.exists() and str(path) in DEFAULT_FILES:
         path = DEFAULT_FILES[str(path)]
+    from orbslam_hgcn.vocabulary import dbow2  # here: dbow2 imports this module
+
+    if dbow2.is_dbow2_text(path):  # a DBoW2 text vocabulary (ORB-SLAM's ORBvoc.txt): an ORB tree
+        if expected_kind not in (None, "orb"):
+            raise VocabularyError(f"{path}: is a DBoW2 text ('orb') vocabulary, expected {expected_kind!r}")
+        return dbow2.read_dbow2_text(path)
     arrays = read_versioned_npz(path, "vocabulary", MAGIC, FORMAT_VERSION, VocabularyError,
                                 "retrain it with 'orbslam-hgcn vocab train'")
     kind = str(arrays.get("_kind", ""))
