@@ -82,32 +82,52 @@ def _splits(n: int, tile: int) -> list[int]:
     return [BLOCK * round(i * blocks / k) for i in range(k + 1)]
 
 
-def _tiles_of(quad: Quad, index: int, tex: np.ndarray, tu: float, tv: float) -> list[_Tile]:
+def _tile_bounds(nu: int, nv: int, tu: float, tv: float, tile_m: float = TILE_M) -> list[tuple[int, int, int, int]]:
+    """(r0, r1, c0, c1) texel bounds of the tiles of an (nv, nu) texture, row by row."""
+    tile_texels = max(BLOCK, min(TILE, BLOCK * int(tile_m / max(tu, tv) / BLOCK)))
+    cs, rs = _splits(nu, tile_texels), _splits(nv, tile_texels)
+    return [(r0, r1, c0, c1) for r0, r1 in zip(rs[:-1], rs[1:]) for c0, c1 in zip(cs[:-1], cs[1:])]
+
+
+def _bordered(tex: np.ndarray) -> np.ndarray:
+    """BGRA texture with a MARGIN of replicated texels, transparent outside the surface."""
     nv, nu = tex.shape[:2]
     bgra = cv2.cvtColor(cv2.copyMakeBorder(tex, MARGIN, MARGIN, MARGIN, MARGIN, cv2.BORDER_REPLICATE),
                         cv2.COLOR_BGR2BGRA)
     bgra[..., 3] = 0
     bgra[MARGIN:MARGIN + nv, MARGIN:MARGIN + nu, 3] = 255
-    tile_texels = max(BLOCK, min(TILE, BLOCK * int(TILE_M / max(tu, tv) / BLOCK)))
+    return bgra
+
+
+def _tile_levels(bgra: np.ndarray, r0: int, r1: int, c0: int, c1: int) -> list[np.ndarray]:
+    """Mip pyramid of one tile cut from a bordered texture (see :func:`_bordered`)."""
+    crop = bgra[r0:r1 + 2 * MARGIN, c0:c1 + 2 * MARGIN].copy()
+    # Transparent outer ring: beyond its margin a tile must not cover its neighbours
+    # (the warp replicates the border texels there).
+    crop[:BLOCK, :, 3] = 0
+    crop[-BLOCK:, :, 3] = 0
+    crop[:, :BLOCK, 3] = 0
+    crop[:, -BLOCK:, 3] = 0
+    lvl = [crop]
+    for _ in range(MAX_LEVEL):
+        h, w = lvl[-1].shape[:2]
+        lvl.append(cv2.resize(lvl[-1], (w // 2, h // 2), interpolation=cv2.INTER_AREA))
+    return lvl
+
+
+def _tile_geometry(quad: Quad, index: int, bounds: tuple[int, int, int, int], tu: float, tv: float,
+                   levels: list[np.ndarray] | None) -> _Tile:
+    r0, r1, c0, c1 = bounds
     U, V = quad.u_axis * tu, quad.v_axis * tv
-    out = []
-    cs, rs = _splits(nu, tile_texels), _splits(nv, tile_texels)
-    for r0, r1 in zip(rs[:-1], rs[1:]):
-        for c0, c1 in zip(cs[:-1], cs[1:]):
-            crop = bgra[r0:r1 + 2 * MARGIN, c0:c1 + 2 * MARGIN].copy()
-            # Transparent outer ring: beyond its margin a tile must not cover its neighbours
-            # (the warp replicates the border texels there).
-            crop[:BLOCK, :, 3] = 0
-            crop[-BLOCK:, :, 3] = 0
-            crop[:, :BLOCK, 3] = 0
-            crop[:, -BLOCK:, 3] = 0
-            lvl = [crop]
-            for _ in range(MAX_LEVEL):
-                h, w = lvl[-1].shape[:2]
-                lvl.append(cv2.resize(lvl[-1], (w // 2, h // 2), interpolation=cv2.INTER_AREA))
-            corners = np.stack([quad.origin + c * U + r * V for r, c in ((r0, c0), (r0, c1), (r1, c1), (r1, c0))])
-            out.append(_Tile(quad.origin, U, V, c0, r0, corners, lvl, index))
-    return out
+    corners = np.stack([quad.origin + c * U + r * V for r, c in ((r0, c0), (r0, c1), (r1, c1), (r1, c0))])
+    return _Tile(quad.origin, U, V, c0, r0, corners, levels, index)
+
+
+def _tiles_of(quad: Quad, index: int, tex: np.ndarray, tu: float, tv: float, tile_m: float = TILE_M) -> list[_Tile]:
+    nv, nu = tex.shape[:2]
+    bgra = _bordered(tex)
+    return [_tile_geometry(quad, index, b, tu, tv, _tile_levels(bgra, *b))
+            for b in _tile_bounds(nu, nv, tu, tv, tile_m)]
 
 
 def surface_texture(scene: Scene, index: int, texture_seed: int, repeated: bool = False,
@@ -135,14 +155,16 @@ def repeat_patch(texture_seed: int) -> np.ndarray:
 
 
 def build_tiles(scene: Scene, texture_seed: int, repeated: bool = False, progress: bool = False,
-                texel_scale: float = 1.0, textures: list[np.ndarray] | None = None) -> list[_Tile]:
+                texel_scale: float = 1.0, textures: list[np.ndarray] | None = None,
+                tile_m: float = TILE_M) -> list[_Tile]:
     """Generate, light and tile the texture of every surface of ``scene``.
 
     Surface ``i`` draws from ``numpy.random.default_rng([texture_seed, i])``; with
     ``repeated`` every surface instead shows one patch (REPEAT_PATCH_M wide) repeated.
     ``texel_scale`` multiplies every surface's texel size (coarser, faster when > 1).
-    ``textures`` (one (h, w, 3) uint8 image per quad, sides multiples of 16) replaces the
-    procedural textures.
+    ``textures`` (one (h, w, 3) uint8 image per quad, sides multiples of 16; any sequence
+    that makes them when indexed) replaces the procedural textures. ``tile_m``: largest
+    tile edge in metres (larger tiles: fewer draws, mip levels chosen over a longer span).
     """
     if textures is not None and len(textures) != len(scene.quads):
         raise ValueError(f"{len(textures)} textures for {len(scene.quads)} surfaces")
@@ -162,7 +184,7 @@ def build_tiles(scene: Scene, texture_seed: int, repeated: bool = False, progres
         if len(scene.lights) or len(contacts[i]):
             shade = shading(q, scene.lights, nv, nu, contacts[i])
             tex = cv2.multiply(tex, cv2.merge([shade, shade, shade]), dtype=cv2.CV_8U)
-        tiles.extend(_tiles_of(q, i, tex, tu, tv))
+        tiles.extend(_tiles_of(q, i, tex, tu, tv, tile_m))
     return tiles
 
 
@@ -192,18 +214,24 @@ class SceneRenderer:
 
     def __init__(self, scene: Scene, camera: PinholeCamera, texture_seed: int = 0, repeated: bool = False,
                  progress: bool = False, lod_bias: float = 0.0, texel_scale: float = 1.0,
-                 textures: list[np.ndarray] | None = None):
+                 textures: list[np.ndarray] | None = None, tile_m: float = TILE_M):
         self.scene = scene
         self.camera = camera
         self.lod_bias = lod_bias  # added to log2(texels per pixel) before choosing a mip level
-        self.tiles = build_tiles(scene, texture_seed, repeated, progress, texel_scale, textures)
+        self.tiles = build_tiles(scene, texture_seed, repeated, progress, texel_scale, textures, tile_m)
+        self._index_tiles()
+        self.last_draw_count = 0
+
+    def _index_tiles(self) -> None:
+        """Arrays over ``self.tiles`` used to cull and draw them."""
+        scene = self.scene
         self._corners = np.stack([t.corners for t in self.tiles])  # (T, 4, 3)
         self._normals = np.stack([scene.quads[t.quad_index].normal for t in self.tiles])  # (T, 3)
         self._texel_area = np.array([np.linalg.norm(t.U) * np.linalg.norm(t.V) for t in self.tiles])
         self._U = np.stack([t.U for t in self.tiles])  # (T, 3) scene-frame step of one texel column
         self._V = np.stack([t.V for t in self.tiles])  # (T, 3) ... of one texel row
         self._O = np.stack([t.origin for t in self.tiles])  # (T, 3) surface origins
-        cam = camera
+        cam = self.camera
         pad = 2.0
         self._planes = np.array([
             [cam.fx, 0.0, cam.cx + pad, 0.0],
@@ -212,12 +240,21 @@ class SceneRenderer:
             [0.0, -cam.fy, cam.height - 1 + pad - cam.cy, 0.0],
             [0.0, 0.0, 1.0, -Z_NEAR],
         ])
-        self.last_draw_count = 0
 
-    def render(self, T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _choose(self, visible: np.ndarray, Xc: np.ndarray, C_s: np.ndarray) -> np.ndarray:
+        """Which of the tiles in view (T,) to draw, given their corners in the camera frame
+        (T, 4, 3) and the camera centre in the scene frame (3,): all of them here."""
+        return visible
+
+    def _levels(self, i: int) -> list[np.ndarray]:
+        """The mip levels of tile i."""
+        return self.tiles[i].levels
+
+    def render(self, T_wc: np.ndarray, background: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Render one view.
 
-        T_wc: (4, 4) camera-to-world pose. Returns ((H, W, 3) uint8 BGR image,
+        T_wc: (4, 4) camera-to-world pose; background: (H, W, 3) uint8 BGR shown where no
+        surface is drawn (default black), e.g. a sky. Returns ((H, W, 3) uint8 BGR image,
         (H, W) float32 inverse depth 1/z in 1/m, 0 where nothing was drawn).
         """
         cam = self.camera
@@ -228,7 +265,7 @@ class SceneRenderer:
         facing = np.einsum("ij,ij->i", C_s[None] - self._corners[:, 0], self._normals) > 1e-4
         Xc = self._corners @ R.T + t  # (T, 4, 3)
         dist = Xc @ self._planes[:, :3].T + self._planes[:, 3]  # (T, 4, 5)
-        visible = facing & ~np.any(np.all(dist < 0, axis=1), axis=1)
+        visible = self._choose(facing & ~np.any(np.all(dist < 0, axis=1), axis=1), Xc, C_s)
         idx = np.flatnonzero(visible)
         n_c = self._normals[idx] @ R.T  # (V, 3)
         Xv = Xc[idx]  # (V, 4, 3)
@@ -272,16 +309,19 @@ class SceneRenderer:
         items.sort(key=lambda it: -it[0])
 
         img = np.zeros((cam.height, cam.width, 4), np.uint8)
+        if background is not None:
+            img[..., :3] = background
         zbuf = np.zeros((cam.height, cam.width), np.float32)
         cols = np.arange(cam.width, dtype=np.float32)
         rows = np.arange(cam.height, dtype=np.float32)
         for _, i, k, level, x0, x1, y0, y1 in items:
             tile = self.tiles[i]
+            levels = self._levels(i)
             s = 0.5 ** level
             S = np.array([[s, 0.0, (MARGIN - tile.c0) * s - 0.5], [0.0, s, (MARGIN - tile.r0) * s - 0.5], [0, 0, 1]])
             M = S @ Hinv[k]
             M[:, 2] += M[:, 0] * x0 + M[:, 1] * y0  # dst pixel (0, 0) of the box is image pixel (x0, y0)
-            warped = cv2.warpPerspective(tile.levels[level], M, (x1 - x0, y1 - y0),
+            warped = cv2.warpPerspective(levels[level], M, (x1 - x0, y1 - y0),
                                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                          borderMode=cv2.BORDER_REPLICATE)
             gk = g[k].astype(np.float32)
