@@ -223,9 +223,13 @@ def local_bundle_adjustment(
 ) -> BAResult:
     """ORB-SLAM local BA: robust iterations, outliers out, refining iterations (see
     :func:`bundle_adjustment` for the arrays; counts from BackendConfig, and whether
-    ``should_stop`` may end the robust iterations: ``local_ba_abort_robust``)."""
+    ``should_stop`` may end the robust iterations: ``local_ba_abort_robust``), solved by
+    the compiled Schur-complement LM or through gtsam (``local_ba_solver``)."""
     cfg = config or BackendConfig()
-    return bundle_adjustment(
+    solve = bundle_adjustment
+    if cfg.local_ba_solver == "schur":
+        from orbslam_hgcn.backend.schur_ba import schur_bundle_adjustment as solve
+    return solve(
         T_cw, fixed, points, obs_kf, obs_pt, uv, inv_sigma2, K,
         iterations=cfg.local_ba_iterations, refine_iterations=cfg.local_ba_refine_iterations,
         robust=True, config=cfg, should_stop=should_stop, stop_first=cfg.local_ba_abort_robust,

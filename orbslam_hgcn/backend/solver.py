@@ -42,7 +42,13 @@ class SolverError(RuntimeError):
 
 
 class InProcessSolver:
-    """Run every optimisation in the calling thread."""
+    """Run every optimisation in the calling thread. The compiled local BA kernels are
+    loaded (or compiled) when it is built, before the first keyframe."""
+
+    def __init__(self) -> None:
+        from orbslam_hgcn.backend.schur_ba import warm_up
+
+        warm_up()
 
     def local_ba(
         self, p: BAProblem, config: BackendConfig, cpu_budget_s: float = 0.0, should_stop: StopFn = None

@@ -8,6 +8,7 @@ fixed, and the origin keyframe is always fixed.
 
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass
 
@@ -50,43 +51,51 @@ class BAWindow:
 
 
 def _window(m: Map, free: list[int], fixed_extra: bool) -> BAWindow:
+    """The points seen by the keyframes ``free`` and all their observations, as arrays;
+    with ``fixed_extra`` the other keyframes observing those points join as fixed ones
+    (otherwise their observations are left out). Observations come point after point, each
+    point's in the order they were made."""
     kfs = {k: m.keyframe(k) for k in free}
     pids_list: list[np.ndarray] = [kfs[k].observed_points()[1] for k in free]
     pids = np.unique(np.concatenate(pids_list)) if pids_list else np.zeros(0, dtype=np.int64)
-    pids = pids[~m._pts.bad[pids]]
-    fixed_ids: set[int] = set()
-    if fixed_extra:
-        for pid in pids:
-            fixed_ids.update(k for k in m._pts.obs[pid] if k not in kfs)
-    kf_ids = np.array(list(free) + sorted(fixed_ids), dtype=np.int64)
-    row = {int(k): i for i, k in enumerate(kf_ids)}
-    col = {int(p): j for j, p in enumerate(pids)}
-    o_kf, o_pt, o_feat = [], [], []
-    for pid in pids:
-        for k, idx in m._pts.obs[pid].items():
-            o_kf.append(row[k])
-            o_pt.append(col[int(pid)])
-            o_feat.append(idx)
-    o_kf_a = np.array(o_kf, dtype=np.int64)
-    o_feat_a = np.array(o_feat, dtype=np.int64)
-    uv = np.zeros((len(o_kf_a), 2))
-    inv_s2 = np.zeros(len(o_kf_a))
-    for i, k in enumerate(kf_ids):
-        sel = o_kf_a == i
+    pids = pids[~m._pts.bad[pids]].astype(np.int64)
+    obs = [m._pts.obs[p] for p in pids.tolist()]
+    sizes = np.fromiter(map(len, obs), dtype=np.int64, count=len(obs))
+    total = int(sizes.sum())
+    o_kf_id = np.fromiter(itertools.chain.from_iterable(o.keys() for o in obs), dtype=np.int64, count=total)
+    o_feat = np.fromiter(itertools.chain.from_iterable(o.values() for o in obs), dtype=np.int64, count=total)
+    o_pt = np.repeat(np.arange(len(pids), dtype=np.int64), sizes)
+    free_a = np.asarray(free, dtype=np.int64)
+    fixed_ids = np.zeros(0, dtype=np.int64)
+    if fixed_extra and total:
+        fixed_ids = np.unique(o_kf_id[~np.isin(o_kf_id, free_a)])
+    kf_ids = np.concatenate([free_a, fixed_ids])
+    lut = np.full(int(max(kf_ids.max(initial=-1), o_kf_id.max(initial=-1))) + 1, -1, dtype=np.int64)
+    lut[kf_ids] = np.arange(len(kf_ids))
+    o_kf = lut[o_kf_id]
+    keep = o_kf >= 0
+    if not keep.all():
+        o_kf, o_pt, o_feat = o_kf[keep], o_pt[keep], o_feat[keep]
+    uv = np.zeros((len(o_kf), 2))
+    inv_s2 = np.zeros(len(o_kf))
+    order = np.argsort(o_kf, kind="stable")
+    bounds = np.searchsorted(o_kf[order], np.arange(len(kf_ids) + 1))
+    for i, k in enumerate(kf_ids.tolist()):
+        sel = order[bounds[i] : bounds[i + 1]]
         kp = m.keyframe(int(k)).keypoints
-        uv[sel] = kp.uv[o_feat_a[sel]]
-        inv_s2[sel] = kp.inv_level_sigma2[kp.octave[o_feat_a[sel]]]
-    fixed = np.array([k == m.origin_id for k in free] + [True] * len(fixed_ids), dtype=bool)
+        uv[sel] = kp.uv[o_feat[sel]]
+        inv_s2[sel] = kp.inv_level_sigma2[kp.octave[o_feat[sel]]]
+    fixed = np.concatenate([free_a == m.origin_id, np.ones(len(fixed_ids), dtype=bool)])
     any_kf = m.keyframe(int(kf_ids[0])) if len(kf_ids) else None
     return BAWindow(
         kf_ids=kf_ids,
-        T_cw=np.array([m.keyframe(int(k)).T_cw for k in kf_ids]).reshape(-1, 4, 4),
+        T_cw=np.array([m.keyframe(int(k)).T_cw for k in kf_ids.tolist()]).reshape(-1, 4, 4),
         fixed=fixed,
-        point_ids=pids.astype(np.int64),
+        point_ids=pids,
         points=m.positions(pids),
-        obs_kf=o_kf_a,
-        obs_pt=np.array(o_pt, dtype=np.int64),
-        obs_feat=o_feat_a,
+        obs_kf=o_kf,
+        obs_pt=o_pt,
+        obs_feat=o_feat,
         uv=uv,
         inv_sigma2=inv_s2,
         K=any_kf.camera.K if any_kf is not None else np.eye(3),
