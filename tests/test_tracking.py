@@ -191,6 +191,14 @@ def test_keyframe_rules():
     strict = TrackingConfig(min_frames=10)
     assert not need_new_keyframe(KeyFrameQuery(**base), strict)  # c1b needs 10 frames
     assert need_new_keyframe(KeyFrameQuery(**{**base, "last_kf_frame_id": 70}), strict)  # c1a: fps frames
+    # c1b also waits min_keyframe_interval_s (0.3 s) of camera time, once the map holds 5
+    # keyframes; c1a does not.
+    timed = {**base, "timestamp": 10.0}
+    assert not need_new_keyframe(KeyFrameQuery(**{**timed, "last_kf_timestamp": 9.8}), cfg)
+    assert need_new_keyframe(KeyFrameQuery(**{**timed, "last_kf_timestamp": 9.7}), cfg)
+    assert need_new_keyframe(KeyFrameQuery(**{**timed, "last_kf_timestamp": 9.8, "n_keyframes": 4}), cfg)
+    assert need_new_keyframe(KeyFrameQuery(**{**timed, "last_kf_timestamp": 9.8, "last_kf_frame_id": 70}), cfg)
+    assert need_new_keyframe(KeyFrameQuery(**timed), cfg)  # no keyframe time known
     # Starved: a keyframe is due by c1a (a camera-second since the last) and c2, and only a
     # busy local mapping stops it.
     busy = {**base, "mapping_idle": False}

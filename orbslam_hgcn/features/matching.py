@@ -19,6 +19,7 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
+from orbslam_hgcn.compiled import jit
 from orbslam_hgcn.features.grid import FeatureGrid
 from orbslam_hgcn.features.hamming import (
     TH_HIGH,
@@ -53,6 +54,7 @@ __all__ = [
     "search_by_bow",
     "search_by_projection",
     "search_for_initialization",
+    "search_for_initialization_tracks",
     "search_for_triangulation",
 ]
 
@@ -100,6 +102,53 @@ def search_for_initialization(
     out[ok] = kps2.uv[match[ok]]
     return match, out
 
+
+
+def search_for_initialization_tracks(
+    desc: np.ndarray,
+    octave: np.ndarray,
+    angle: np.ndarray,
+    centre: np.ndarray,
+    kps2: KeypointSet,
+    grid2: FeatureGrid,
+    window: float,
+    ratio: float = 0.9,
+    level_slack: int = 1,
+    check_orientation: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The initialiser's frame-to-frame step: features followed from the previous image
+    searched in image 2 (a variant of ORB-SLAM's SearchForInitialization, which searches
+    only level-0 features of the reference, always with the reference's descriptors).
+
+    Feature i (its descriptor ``desc[i]`` (32,) uint8, level ``octave[i]`` and orientation
+    ``angle[i]`` degrees as last seen) is searched among the keypoints of image 2 within
+    ``level_slack`` levels of its own, inside a square window of half side ``window``
+    around ``centre[i]`` (M, 2) (its predicted position). A match needs distance <= TH_LOW
+    and best < ratio * second best; a keypoint wanted by several features goes to the
+    closest; then the rotation check against ``angle``.
+    Returns ((M,) int64 index into image 2 or -1, (M,) int64 distance, 1 << 30 where none).
+    """
+    m = len(desc)
+    match = np.full(m, -1, dtype=np.int64)
+    dist = np.full(m, 1 << 30, dtype=np.int64)
+    if m == 0 or len(kps2) == 0:
+        return match, dist
+    octave = np.asarray(octave, dtype=np.int64).reshape(m)
+    lo = np.maximum(octave - level_slack, 0)
+    hi = octave + level_slack
+    centre = np.asarray(centre, dtype=np.float64).reshape(m, 2)
+    best, bd, _, sd = scan_windows(
+        kps2, grid2, centre[:, 0], centre[:, 1], np.full(m, float(window)), lo, hi, desc,
+        np.ones(len(kps2), dtype=bool), 0.0,
+    )  # fmt: skip
+    ok = (best >= 0) & (bd <= TH_LOW) & (bd < ratio * sd)
+    match[ok] = best[ok]
+    dist[ok] = bd[ok]
+    match = resolve_conflicts(match, dist)
+    if check_orientation:
+        match = apply_rotation_check(match, np.asarray(angle), kps2.angle)
+    dist[match < 0] = 1 << 30
+    return match, dist
 
 def bow_candidate_pairs(featvec1: FeatureVector, featvec2: FeatureVector) -> tuple[np.ndarray, np.ndarray]:
     """All (i1, i2) feature pairs that share a vocabulary node.
@@ -168,6 +217,52 @@ def search_by_bow(
     return match
 
 
+def _words64(desc: np.ndarray) -> np.ndarray:
+    """(N, 4) uint64 view of (N, 32) uint8 descriptors."""
+    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64)
+
+
+@jit
+def _popcount64(x):
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
+
+
+@jit
+def _triangulation_candidates(i1, i2, d1, d2, uv1, uv2, oct2, scale2, sigma2_2, F, e, avail1, avail2, n1, th_low):
+    """The closest acceptable candidate of every image-1 feature for
+    :func:`search_for_triangulation`: ((n1,) position in the candidate arrays or -1,
+    (n1,) its Hamming distance, 1 << 30 where none). Ties keep the earliest candidate."""
+    best_pos = np.full(n1, -1, dtype=np.int64)
+    best = np.full(n1, 1 << 30, dtype=np.int64)
+    for k in range(len(i1)):
+        a, b = i1[k], i2[k]
+        if not (avail1[a] and avail2[b]):
+            continue
+        d = 0
+        for w in range(d1.shape[1]):
+            d += _popcount64(d1[a, w] ^ d2[b, w])
+        if d > th_low or d >= best[a]:
+            continue
+        u2, v2 = uv2[b, 0], uv2[b, 1]
+        o = oct2[b]
+        if (u2 - e[0]) ** 2 + (v2 - e[1]) ** 2 < 100.0 * scale2[o]:
+            continue  # too close to the epipole
+        u1, v1 = uv1[a, 0], uv1[a, 1]
+        l0 = u1 * F[0, 0] + v1 * F[1, 0] + F[2, 0]  # epipolar line of x1 in image 2: x1^T F12
+        l1 = u1 * F[0, 1] + v1 * F[1, 1] + F[2, 1]
+        l2 = u1 * F[0, 2] + v1 * F[1, 2] + F[2, 2]
+        num = l0 * u2 + l1 * v2 + l2
+        den = l0 * l0 + l1 * l1
+        if not (den > 0.0 and num * num / den < 3.84 * sigma2_2[o]):
+            continue
+        best[a] = d
+        best_pos[a] = k
+    return best_pos, best
+
+
 def search_for_triangulation(
     kps1: KeypointSet,
     kps2: KeypointSet,
@@ -194,32 +289,16 @@ def search_for_triangulation(
         i1 = np.repeat(np.arange(len(kps1)), len(kps2))
         i2 = np.tile(np.arange(len(kps2)), len(kps1))
     else:
-        i1, i2 = (np.asarray(p, dtype=np.int64) for p in pairs)
-    keep = np.ones(len(i1), dtype=bool)
-    if avail1 is not None:
-        keep &= np.asarray(avail1, dtype=bool)[i1]
-    if avail2 is not None:
-        keep &= np.asarray(avail2, dtype=bool)[i2]
-    i1, i2 = i1[keep], i2[keep]
-    d = hamming_pairs(kps1.desc[i1], kps2.desc[i2])
-    keep = d <= TH_LOW
-    i1, i2, d = i1[keep], i2[keep], d[keep]
-    uv1 = kps1.uv[i1]
-    uv2 = kps2.uv[i2]
-    oct2 = kps2.octave[i2]
-    e = np.asarray(epipole2, dtype=np.float64).reshape(2)
-    far = np.sum((uv2 - e) ** 2, axis=1) >= 100.0 * kps2.scale_factors[oct2]
-    # Epipolar line in image 2 of x1: l2 = x1^T F12.
-    F = np.asarray(F12, dtype=np.float64)
-    line = uv1 @ F[:2, :] + F[2, :]
-    num = line[:, 0] * uv2[:, 0] + line[:, 1] * uv2[:, 1] + line[:, 2]
-    den = line[:, 0] ** 2 + line[:, 1] ** 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        on_line = (den > 0) & (num * num / den < 3.84 * kps2.level_sigma2[oct2])
-    keep = far & on_line
-    i1, i2, d = i1[keep], i2[keep], d[keep]
-    n1 = len(kps1)
-    bp, bd, _, _ = best_two_per_group(i1, d, n1)
+        i1, i2 = (np.ascontiguousarray(p, dtype=np.int64) for p in pairs)
+    n1, n2 = len(kps1), len(kps2)
+    a1 = np.ones(n1, dtype=bool) if avail1 is None else np.ascontiguousarray(avail1, dtype=bool)
+    a2 = np.ones(n2, dtype=bool) if avail2 is None else np.ascontiguousarray(avail2, dtype=bool)
+    bp, bd = _triangulation_candidates(
+        i1, i2, _words64(kps1.desc), _words64(kps2.desc), kps1.uv, kps2.uv, kps2.octave.astype(np.int64),
+        np.asarray(kps2.scale_factors, dtype=np.float64), np.asarray(kps2.level_sigma2, dtype=np.float64),
+        np.ascontiguousarray(F12, dtype=np.float64), np.asarray(epipole2, dtype=np.float64).reshape(2),
+        a1, a2, n1, TH_LOW,
+    )  # fmt: skip
     match = np.full(n1, -1, dtype=np.int64)
     ok = bp >= 0
     match[ok] = i2[bp[ok]]

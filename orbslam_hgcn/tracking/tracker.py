@@ -149,6 +149,7 @@ class Tracker:
         self.velocity: np.ndarray | None = None
         self.ref_kf_id = -1
         self.last_kf_frame_id = -1
+        self.last_kf_timestamp = float("nan")
         self.last_reloc_frame_id = -1
         self.initializer.reset()
 
@@ -220,6 +221,7 @@ class Tracker:
         frame.ref_kf_id = kf2.id
         self.ref_kf_id = kf2.id
         self.last_kf_frame_id = frame.id
+        self.last_kf_timestamp = frame.timestamp
         self.local_map.update(frame)
         self.local_map.ref_kf_id = kf2.id
         self.velocity = None
@@ -343,6 +345,8 @@ class Tracker:
             ref_tracked=ref_tracked,
             mapping_idle=bool(self.mapping_idle()),
             fps=frame.camera.fps,
+            timestamp=frame.timestamp,
+            last_kf_timestamp=self.last_kf_timestamp,
         )
         if not need_new_keyframe(q, self.config):
             return None, keyframe_starved(q, self.config)
@@ -356,6 +360,7 @@ class Tracker:
             m.add_observations(kf.id, frame.point_ids[slots[good]], slots[good])
         self.ref_kf_id = kf.id
         self.last_kf_frame_id = frame.id
+        self.last_kf_timestamp = frame.timestamp
         return kf, False
 
     # --- trajectory records ------------------------------------------------------------
