@@ -205,48 +205,94 @@ def _run_viz_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+_SYNTH_DESCRIPTION = """\
+Render a synthetic sequence with exact ground truth into OUT: an office (a loop round a desk,
+or a replayed TUM trajectory) or a KITTI-like street drive, in the TUM RGB-D layout (rgb/,
+rgb.txt, groundtruth.txt) or the KITTI odometry layout (sequences/NN/image_0/, times.txt,
+calib.txt, poses/NN.txt), with camera.yaml and scene.json (loop_gt.npy, depth on request).
+
+presets (--preset NAME; options given beside a preset override its values):
+  office_loop      the demo's 30 s office loop, clean, with loop_gt.npy
+  fr3_replay_hard  the fr3 long-office camera path replayed (2,613 frames at 30 Hz; --gt to
+                   replay another), blurred along the image motion over 16 ms exposures,
+                   auto-exposure steps of 30-50 % every 2-6 s settling over 6 frames,
+                   vignetting (corners at 70 %), noise 2, exposure drift 0.1, JPEG quality 75
+  street           a 60 s street drive with KITTI 00's camera (1241x376, 10 Hz) in the KITTI
+                   layout, the same degradations with 5 ms exposures, auto-exposure settling
+                   over 3 frames, noise 1.5, JPEG quality 80
+"""
+
+
 @subcommand
 def _add_synth(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "synth",
-        help="render a synthetic sequence (TUM layout) with exact ground truth",
-        description="Render a synthetic office sequence into OUT in the TUM RGB-D layout: rgb/, rgb.txt, "
-        "groundtruth.txt, camera.yaml, scene.json (and loop_gt.npy, depth/ on request).",
+        help="render a synthetic sequence (office or street; TUM or KITTI layout) with exact ground truth",
+        description=_SYNTH_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--trajectory", choices=("loop", "replay"), default="loop",
-                   help="generated loop round the desk (default) or a replayed TUM ground truth")
+    p.add_argument("--preset", choices=("office_loop", "fr3_replay_hard", "street"),
+                   help="a named option set (see above)")
+    p.add_argument("--scene", choices=("office", "street"),
+                   help="office room (default) or street drive (KITTI 00's camera, 45 s by default)")
+    p.add_argument("--layout", choices=("tum", "kitti"), help="output layout (default tum)")
+    p.add_argument("--sequence", type=int, help="sequence number NN of the KITTI layout (default 0)")
+    p.add_argument("--trajectory", choices=("loop", "replay"),
+                   help="office: generated loop round the desk (default) or a replayed TUM ground truth")
     p.add_argument("--gt", help="TUM ground-truth file to replay (with --trajectory replay)")
     n = p.add_mutually_exclusive_group()
     n.add_argument("--frames", type=int, help="number of frames (default: 30 s of loop, or the whole replay)")
     n.add_argument("--duration", type=float, help="length in seconds")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
-    p.add_argument("--noise", type=float, default=0.0, help="Gaussian sensor noise sigma in grey levels")
-    p.add_argument("--exposure-drift", type=float, default=0.0,
+    p.add_argument("--fps", type=float, help="frame rate (default 30; street 10)")
+    p.add_argument("--noise", type=float, help="Gaussian sensor noise sigma in grey levels (default 0)")
+    p.add_argument("--exposure-drift", type=float,
                    help="slow relative gain swing, e.g. 0.2 for +-20%% (default 0)")
-    p.add_argument("--motion-blur", action="store_true", help="average sub-frame renders over the shutter time")
-    p.add_argument("--seed", type=int, default=0, help="seed of sensor noise and exposure drift")
-    p.add_argument("--scene-seed", type=int, default=0,
-                   help="seed of the room layout and the loop's wobble (and of the textures)")
+    p.add_argument("--motion-blur", nargs="?", const="subframes", choices=("subframes", "flow"),
+                   help="motion blur over the shutter time: the average of sub-frame renders (exact; the "
+                   "default mode), or 'flow': each pixel blurred along its own image motion, from its depth "
+                   "and the camera poses (faster, any blur length)")
+    p.add_argument("--shutter", type=float, help="exposure time as a fraction of the frame interval (default 0.5)")
+    p.add_argument("--vignetting", type=float, help="darkening of the image corners, e.g. 0.3 (default 0)")
+    p.add_argument("--exposure-steps", type=float,
+                   help="sudden auto-exposure steps of +-(0.75-1.25) x this, e.g. 0.4 for 30-50%% (default 0)")
+    p.add_argument("--exposure-step-interval", type=float, help="mean seconds between exposure steps (default 4)")
+    p.add_argument("--exposure-settle", type=int,
+                   help="frames the auto-exposure takes to undo a step, to 5%% (default 4)")
+    p.add_argument("--jpeg-quality", type=int, help="JPEG encode/decode at this quality, 1-100 (default 0: none)")
+    p.add_argument("--fog", type=float,
+                   help="stretches of fog and flat light (one per 25 s, 3-6 s long): the contrast lost at the "
+                   "scene's typical depth, e.g. 0.7 (default 0)")
+    p.add_argument("--seed", type=int, help="seed of noise, exposure drift and steps, fog (default 0)")
+    p.add_argument("--scene-seed", type=int,
+                   help="seed of the layout and the camera path's wobble (and of the textures) (default 0)")
     p.add_argument("--texture-seed", type=int, help="seed of the surface textures (default: the scene seed)")
-    p.add_argument("--repeated-texture", action="store_true",
+    p.add_argument("--repeated-texture", action="store_true", default=None,
                    help="one texture patch repeated on every surface (a false-loop test)")
-    p.add_argument("--texel-scale", type=float, default=1.0, help="texel sizes times this (coarser, faster)")
-    p.add_argument("--loop-gt", action="store_true", help="write loop_gt.npy (frame pairs that revisit a place)")
-    p.add_argument("--depth", action="store_true", help="also write TUM-style depth images")
+    p.add_argument("--texel-scale", type=float, help="texel sizes times this (coarser, faster) (default 1)")
+    p.add_argument("--loop-gt", action="store_true", default=None,
+                   help="write loop_gt.npy (frame pairs that revisit a place)")
+    p.add_argument("--depth", action="store_true", default=None,
+                   help="also write depth images (TUM: 5000 per metre; KITTI layout: 256 per metre)")
     p.add_argument("--force", action="store_true", help="overwrite a non-empty output folder")
     p.set_defaults(func=_run_synth)
 
 
 def _run_synth(args: argparse.Namespace) -> int:
-    from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+    from orbslam_hgcn.datasets.synthetic import render_sequence, synth_options
 
-    options = SynthOptions(
-        trajectory=args.trajectory, gt=args.gt, frames=args.frames, duration=args.duration, fps=args.fps,
-        noise=args.noise, exposure_drift=args.exposure_drift, motion_blur=args.motion_blur, seed=args.seed,
-        scene_seed=args.scene_seed, texture_seed=args.texture_seed, repeated_texture=args.repeated_texture,
-        texel_scale=args.texel_scale, loop_gt=args.loop_gt, depth=args.depth,
-    )
+    given = {
+        "scene": args.scene, "layout": args.layout, "kitti_sequence": args.sequence, "trajectory": args.trajectory,
+        "gt": args.gt, "frames": args.frames, "duration": args.duration, "fps": args.fps, "noise": args.noise,
+        "exposure_drift": args.exposure_drift, "motion_blur": None if args.motion_blur is None else True,
+        "motion_blur_mode": args.motion_blur, "shutter": args.shutter, "vignetting": args.vignetting,
+        "exposure_steps": args.exposure_steps, "exposure_step_interval": args.exposure_step_interval,
+        "exposure_settle": args.exposure_settle, "jpeg_quality": args.jpeg_quality, "fog": args.fog,
+        "seed": args.seed, "scene_seed": args.scene_seed, "texture_seed": args.texture_seed,
+        "repeated_texture": args.repeated_texture, "texel_scale": args.texel_scale, "loop_gt": args.loop_gt,
+        "depth": args.depth,
+    }
+    options = synth_options(args.preset, **{k: v for k, v in given.items() if v is not None})
     out = render_sequence(args.out, options, force=args.force)
     print(out)
     return 0

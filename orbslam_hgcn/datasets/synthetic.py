@@ -1,6 +1,6 @@
-"""Synthetic monocular sequences in the TUM RGB-D layout, with exact ground truth.
+"""Synthetic monocular sequences with exact ground truth, in the TUM or KITTI layout.
 
-``render_sequence(out_dir, SynthOptions(...))`` writes::
+``render_sequence(out_dir, SynthOptions(...))`` writes, in the TUM layout (default)::
 
     out_dir/rgb/<timestamp>.png    640x480 colour frames (BGR PNG)
     out_dir/rgb.txt                "timestamp rgb/<timestamp>.png" per frame
@@ -10,12 +10,25 @@
     out_dir/loop_gt.npy            (N, N) bool revisits (with ``loop_gt``)
     out_dir/depth/, depth.txt      16-bit depth, 5000 per metre (with ``depth``)
 
-The scene is an office room (synthetic_layout, from the scene seed) rendered exactly
-(synthetic_render) along a generated loop round the desk (also from the scene seed) or a
-replayed TUM trajectory (synthetic_trajectory), with textures from the texture seed.
-Camera effects, in order: motion blur (the average of sub-frame renders spread over the
-shutter time), exposure drift (slow gain and offset changes), Gaussian sensor noise.
-The same options give byte-identical files.
+and in the KITTI odometry layout (``layout="kitti"``, grey frames; what ``KittiSequence``
+reads)::
+
+    out_dir/sequences/NN/image_0/000000.png ...   grey frames
+    out_dir/sequences/NN/times.txt                seconds from the first frame
+    out_dir/sequences/NN/calib.txt                P0..P3 (P1, P3: a 0.54 m stereo baseline)
+    out_dir/sequences/NN/depth/                   16-bit depth, 256 per metre (with ``depth``)
+    out_dir/poses/NN.txt                          3x4 T_wc rows, the first camera as world
+    out_dir/camera.yaml, scene.json, loop_gt.npy  as above
+
+Scenes: an office room (synthetic_layout, from the scene seed) seen along a generated loop
+round the desk (also from the scene seed) or a replayed TUM trajectory
+(synthetic_trajectory); or a street (synthetic_street) driven forward through corners,
+with a sky. Both are rendered exactly (synthetic_render), with textures from the texture
+seed. Camera effects, in order: fog (synthetic_degrade), motion blur (the average of
+sub-frame renders spread over the shutter time, or each pixel blurred along its own
+motion), vignetting, auto-exposure steps, exposure drift (slow gain and offset changes),
+Gaussian sensor noise, rounding, JPEG compression. The same options give byte-identical
+files.
 """
 
 from __future__ import annotations
@@ -32,20 +45,26 @@ import numpy as np
 from tqdm import tqdm
 
 from orbslam_hgcn.config import save_camera
+from orbslam_hgcn.datasets.synthetic_degrade import Degradations, flow_blur
+from orbslam_hgcn.datasets.synthetic_output import PNG_PARAMS, TumWriter, make_writer, writer_class  # noqa: F401
 from orbslam_hgcn.datasets.synthetic_render import SceneRenderer
 from orbslam_hgcn.datasets.synthetic_layout import DeskSpec, build_scene
 from orbslam_hgcn.datasets.synthetic_trajectory import LoopPath, ReplayPath, fit_scene_to_trajectory, loop_ground_truth
 from orbslam_hgcn.errors import ConfigError, DatasetError
 from orbslam_hgcn.geometry.camera import PinholeCamera
-from orbslam_hgcn.trajectory import Trajectory, read_tum, write_tum
+from orbslam_hgcn.trajectory import read_tum
 
 log = logging.getLogger(__name__)
 
-# zlib level 1 with run-length matching: ~25 % faster than plain level 1 and ~10 % smaller
-# on these frames (measured with OpenCV 5.0).
-PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
 MIN_LOOP_S = 10.0  # shortest loop period (s): faster would not be a hand-held walk
-_OUTPUTS = ("rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.yaml", "scene.json", "loop_gt.npy")
+_OUTPUTS = ("rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.yaml", "scene.json", "loop_gt.npy",
+            "sequences", "poses")
+# KITTI odometry sequence 00's camera P0 (Geiger et al., CVPR 2012; configs/kitti_00-02.yaml).
+KITTI_CAMERA = {"fx": 718.856, "fy": 718.856, "cx": 607.1928, "cy": 185.2157, "width": 1241, "height": 376,
+                "fps": 10.0}
+STREET_DURATION = 45.0  # default length of a street drive (s)
+STREET_TILE_M = 4.0  # tile edge of street surfaces (m): fewer draws over kilometres of surfaces
+REF_DEPTH = {"office": 1.5, "street": 15.0}  # typical depths (m), the fog's reference
 
 
 @dataclass(frozen=True)
@@ -77,15 +96,40 @@ class SynthOptions:
     loop_gt_dist: float = 0.5  # loop ground truth: camera centres closer than this (m)
     loop_gt_angle: float = 30.0  # ... and optical axes closer than this (degrees)
     depth: bool = False  # also write TUM depth images
+    # Fields below this line are left out of scene.json while at their defaults, so that
+    # sequences rendered before they existed still match their cached options.
+    scene: str = "office"  # "office" or "street" (use the KITTI camera: street_options())
+    layout: str = "tum"  # "tum" (colour, rgb.txt) or "kitti" (grey, sequences/NN/image_0)
+    kitti_sequence: int = 0  # NN of the KITTI layout
+    motion_blur_mode: str = "subframes"  # "subframes" (average of renders) or "flow" (along each pixel's motion)
+    vignetting: float = 0.0  # darkening of the image corners (0.3: corners at 70 %)
+    exposure_steps: float = 0.0  # auto-exposure jumps of +-(0.75..1.25) x this (0.4: 30-50 %)
+    exposure_step_interval: float = 4.0  # mean seconds between auto-exposure steps
+    exposure_settle: int = 4  # frames the auto-exposure takes to undo a step (to 5 %)
+    jpeg_quality: int = 0  # JPEG encode/decode at this quality (1-100; 0: none)
+    fog: float = 0.0  # fog stretches: contrast lost at the scene's reference depth (0..1)
 
     @property
     def camera(self) -> PinholeCamera:
         return PinholeCamera(self.fx, self.fy, self.cx, self.cy, self.width, self.height, fps=self.fps,
-                             name="synthetic_tum_fr3")
+                             name="synthetic_tum_fr3" if self.scene == "office" else f"synthetic_{self.scene}")
 
     def validate(self) -> None:
         if self.trajectory not in ("loop", "replay"):
             raise ConfigError(f"trajectory must be 'loop' or 'replay', not {self.trajectory!r}")
+        if self.scene not in ("office", "street"):
+            raise ConfigError(f"scene must be 'office' or 'street', not {self.scene!r}")
+        if self.scene == "street" and (self.trajectory != "loop" or self.loop_gt or self.repeated_texture):
+            raise ConfigError("the street scene has its own drive: no --trajectory replay, --loop-gt or "
+                              "--repeated-texture")
+        if self.layout not in ("tum", "kitti") or not 0 <= self.kitti_sequence <= 99:
+            raise ConfigError(f"layout must be 'tum' or 'kitti' (sequence 0-99), not {self.layout!r}")
+        if self.motion_blur_mode not in ("subframes", "flow"):
+            raise ConfigError(f"motion blur mode must be 'subframes' or 'flow', not {self.motion_blur_mode!r}")
+        if not (0 <= self.vignetting < 1 and 0 <= self.fog < 1 and self.exposure_steps >= 0
+                and self.exposure_step_interval > 0 and self.exposure_settle >= 1 and 0 <= self.jpeg_quality <= 100):
+            raise ConfigError("vignetting and fog must be in [0, 1), exposure steps non-negative with a positive "
+                              "interval and settle, JPEG quality in 0-100")
         if self.trajectory == "replay" and not self.gt:
             raise ConfigError("trajectory 'replay' needs a ground-truth file (--gt)")
         if self.frames is not None and self.frames < 1:
@@ -98,12 +142,63 @@ class SynthOptions:
             raise ConfigError(f"texel_scale must be positive, not {self.texel_scale}")
 
 
+def street_options(**kw) -> SynthOptions:
+    """Options of a street drive with the KITTI 00 camera (1241x376 at 10 Hz); ``kw`` overrides."""
+    return SynthOptions(**{"scene": "street", **KITTI_CAMERA, **kw})
+
+
+FR3_GT = Path(__file__).resolve().parents[3] / "shared/data/tum_fr3_long_office_household_sample/groundtruth.txt"
+# Degradations of the hard presets: blur along the image motion, auto-exposure steps of
+# 30-50 % every 2-6 s, vignetting (corners at 70 %), sensor noise, slow exposure drift, JPEG.
+_HARD = {"motion_blur": True, "motion_blur_mode": "flow", "vignetting": 0.3, "exposure_steps": 0.4,
+         "exposure_step_interval": 4.0, "exposure_drift": 0.1}
+PRESETS: dict[str, dict] = {
+    # The demo's office loop: 30 s round the desk, clean, with loop ground truth.
+    "office_loop": {"loop_gt": True},
+    # The real fr3 long-office camera path replayed in a synthetic room (2,613 frames at
+    # 30 Hz), 16 ms exposures, AE settling over 6 frames, JPEG quality 75.
+    "fr3_replay_hard": {"trajectory": "replay", "gt": str(FR3_GT), **_HARD, "shutter": 0.5, "noise": 2.0,
+                        "exposure_settle": 6, "jpeg_quality": 75},
+    # A 60 s street drive with KITTI 00's camera, written in the KITTI layout, 5 ms
+    # exposures, AE settling over 3 frames, JPEG quality 80.
+    "street": {"scene": "street", "layout": "kitti", "duration": 60.0, **_HARD, "shutter": 0.05, "noise": 1.5,
+               "exposure_settle": 3, "jpeg_quality": 80},
+}
+
+
+def synth_options(preset: str | None = None, **kw) -> SynthOptions:
+    """Options from a preset of PRESETS (or none), ``kw`` overriding its values; a street
+    scene gets the KITTI camera unless ``kw`` sets it."""
+    if preset is not None and preset not in PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}; use one of {', '.join(PRESETS)}")
+    base = dict(PRESETS[preset]) if preset else {}
+    if kw.get("frames") is not None:
+        base.pop("duration", None)
+    base.update(kw)
+    if base.get("scene") == "street":
+        base = {**KITTI_CAMERA, **base}
+    return SynthOptions(**base)
+
+
+def _frame_count(options: SynthOptions, default_s: float) -> int:
+    if options.frames is not None:
+        return options.frames
+    return int(round((options.duration or default_s) * options.fps))
+
+
 def build_sequence(options: SynthOptions):
     """The scene and camera motion of a sequence, without rendering.
 
     Returns (scene, pose function: times (N,) -> T_wc (N, 4, 4), frame timestamps (N,),
     JSON-able trajectory description).
     """
+    if options.scene == "street":
+        from orbslam_hgcn.datasets.synthetic_street import StreetSpec, build_street
+
+        n = _frame_count(options, STREET_DURATION)
+        spec = StreetSpec()
+        scene, drive = build_street(options.scene_seed, n / options.fps * spec.speed + 1.0, spec)
+        return scene, drive, np.arange(n) / options.fps, drive.params()
     if options.trajectory == "replay":
         gt = read_tum(options.gt)
         path = ReplayPath(gt)
@@ -114,7 +209,7 @@ def build_sequence(options: SynthOptions):
         scene, info = fit_scene_to_trajectory(gt.poses, options.scene_seed)
         info.update({"kind": "replay", "source": str(options.gt), "source_poses": len(gt)})
         return scene, path, stamps, info
-    n = options.frames if options.frames is not None else int(round((options.duration or 30.0) * options.fps))
+    n = _frame_count(options, 30.0)
     period = max(n / options.fps, MIN_LOOP_S)  # shorter sequences: the start of a walkable loop
     desk_rng = np.random.default_rng([int(options.scene_seed), 5])
     desk = DeskSpec(float(desk_rng.uniform(1.4, 1.8)), float(desk_rng.uniform(0.75, 0.9)), 0.74)
@@ -128,6 +223,9 @@ def build_sequence(options: SynthOptions):
         return T_ws @ loop(t)
 
     return scene, poses, np.arange(n) / options.fps, loop.params()
+
+
+_FIRST_NEW_FIELD = [f.name for f in dataclasses.fields(SynthOptions)].index("scene")
 
 
 class CameraEffects:
@@ -157,19 +255,58 @@ class CameraEffects:
         return cv2.addWeighted(img, gain, img, 0.0, offset, dtype=cv2.CV_8U)
 
 
-def render_frame(renderer: SceneRenderer, poses, t: float, options: SynthOptions) -> tuple[np.ndarray, np.ndarray]:
+class SkyView:
+    """A renderer with a sky behind the scene: the same ``render(T_wc)`` and ``camera``."""
+
+    def __init__(self, renderer: SceneRenderer, sky):
+        self.renderer = renderer
+        self.sky = sky
+        self.camera = renderer.camera
+
+    @property
+    def last_draw_count(self) -> int:
+        return self.renderer.last_draw_count
+
+    def render(self, T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.renderer.render(T_wc, background=self.sky(T_wc))
+
+
+def make_renderer(scene, options: SynthOptions, progress: bool = False):
+    """The renderer of a sequence's scene (textures built here): ``render(T_wc)``, ``camera``."""
+    texture_seed = options.scene_seed if options.texture_seed is None else options.texture_seed
+    if options.scene == "street":
+        from orbslam_hgcn.datasets.synthetic_street_textures import SkyBackground, StreetTextures
+
+        from orbslam_hgcn.datasets.synthetic_render_lod import LodSceneRenderer
+
+        textures = StreetTextures(scene, texture_seed, options.texel_scale)
+        renderer = LodSceneRenderer(scene, options.camera, textures, tile_m=STREET_TILE_M)
+        return SkyView(renderer, SkyBackground(options.camera, scene.sun, texture_seed, scene.T_world_scene))
+    return SceneRenderer(scene, options.camera, texture_seed, options.repeated_texture, progress=progress,
+                         texel_scale=options.texel_scale)
+
+
+def render_frame(renderer: SceneRenderer, poses, t: float, options: SynthOptions,
+                 post=None) -> tuple[np.ndarray, np.ndarray]:
     """One exposure at time t: ((H, W, 3) float32 or uint8 image, (H, W) float32 inverse depth).
 
     With motion blur, sub-frames (an odd number, enough for about 1.5 px of motion
     between neighbours, at most 15) are rendered across the shutter time and averaged; the
-    inverse depth is that of the middle sub-frame (the ground-truth pose).
+    inverse depth is that of the middle sub-frame (the ground-truth pose). In the "flow"
+    mode, the middle render is blurred along each pixel's own motion instead
+    (``synthetic_degrade.flow_blur``). ``post(img, inv_depth)``, when given, is applied to
+    every render before averaging (fog).
     """
     T = poses(np.array([t]))[0]
     img, inv_depth = renderer.render(T)
+    if post is not None:
+        img = post(img, inv_depth)
     if not options.motion_blur:
         return img, inv_depth
     half = 0.5 * options.shutter / options.fps
     ends = poses(np.array([t - half, t + half]))
+    if options.motion_blur_mode == "flow":
+        return flow_blur(img, inv_depth, renderer.camera, T, ends[0], ends[1]), inv_depth
     motion = _image_motion(renderer.camera, inv_depth, T, ends)
     n = int(min(15, 2 * np.ceil(motion / 3.0) + 1))
     if n <= 1:
@@ -177,7 +314,8 @@ def render_frame(renderer: SceneRenderer, poses, t: float, options: SynthOptions
     acc = img.astype(np.float32)
     offsets = [-half + 2.0 * half * k / (n - 1) for k in range(n) if k != n // 2]  # the middle one is img
     for sub_T in poses(t + np.array(offsets)):
-        acc += renderer.render(sub_T)[0]
+        sub, sub_inv = renderer.render(sub_T)
+        acc += sub if post is None else post(sub, sub_inv)
     return acc * np.float32(1.0 / n), inv_depth
 
 
@@ -197,7 +335,7 @@ def _image_motion(cam: PinholeCamera, inv_depth: np.ndarray, T_wc: np.ndarray, e
     return float(np.linalg.norm(uv[1] - uv[0], axis=1).max())
 
 
-def _prepare_out(out: Path, meta_options: dict, force: bool) -> bool:
+def _prepare_out(out: Path, meta_options: dict, force: bool, writer=TumWriter, sequence: int = 0) -> bool:
     """True when ``out`` already holds this very sequence; clears it under ``force``."""
     meta = out / "scene.json"
     if meta.is_file() and not force:
@@ -205,10 +343,8 @@ def _prepare_out(out: Path, meta_options: dict, force: bool) -> bool:
             old = json.loads(meta.read_text(encoding="utf-8")).get("options")
         except (OSError, json.JSONDecodeError):
             old = None
-        if old == meta_options and (out / "rgb.txt").is_file():
-            listed = [ln.split()[1] for ln in (out / "rgb.txt").read_text().splitlines() if ln and ln[0] != "#"]
-            if listed and all((out / p).is_file() for p in listed):
-                return True
+        if old == meta_options and writer.complete(out, sequence):
+            return True
     if out.exists() and any(out.iterdir()):
         if not force:
             raise DatasetError(f"{out}: output folder is not empty (use --force to overwrite)")
@@ -229,54 +365,55 @@ def _json_default(x):
     raise TypeError(f"cannot serialise {type(x).__name__}")
 
 
+def _meta_options(options: SynthOptions) -> dict:
+    """JSON-able options for scene.json; the newer fields only when they differ from their
+    defaults (older sequences keep matching their cache)."""
+    d = dataclasses.asdict(options)
+    for f in dataclasses.fields(SynthOptions)[_FIRST_NEW_FIELD:]:
+        if d[f.name] == f.default:
+            del d[f.name]
+    return json.loads(json.dumps(d, default=_json_default))
+
+
 def render_sequence(out_dir: str | Path, options: SynthOptions = SynthOptions(), force: bool = False,
                     progress: bool = True) -> Path:
-    """Render a synthetic sequence into ``out_dir`` (see the module docstring); returns it.
+    """Render a synthetic sequence into ``out_dir`` (see the module docstring).
 
-    An ``out_dir`` that already holds the same sequence (same options, all frames present)
-    is kept as it is; any other non-empty folder is refused unless ``force``.
+    Returns the folder to read it from: ``out_dir`` (TUM layout) or
+    ``out_dir/sequences/NN`` (KITTI layout). An ``out_dir`` that already holds the same
+    sequence (same options, all frames present) is kept as it is; any other non-empty
+    folder is refused unless ``force``.
     """
     options.validate()
     out = Path(out_dir)
-    meta_options = json.loads(json.dumps(dataclasses.asdict(options), default=_json_default))
-    if _prepare_out(out, meta_options, force):
+    meta_options = _meta_options(options)
+    writer_cls = writer_class(options.layout)
+    if _prepare_out(out, meta_options, force, writer_cls, options.kitti_sequence):
         log.info("%s already holds this sequence; nothing to do", out)
-        return out
+        return out / "sequences" / f"{options.kitti_sequence:02d}" if options.layout == "kitti" else out
     cam = options.camera
     scene, poses, stamps, traj_info = build_sequence(options)
-    texture_seed = options.scene_seed if options.texture_seed is None else options.texture_seed
-    renderer = SceneRenderer(scene, cam, texture_seed, options.repeated_texture, progress=progress,
-                             texel_scale=options.texel_scale)
+    renderer = make_renderer(scene, options, progress)
     effects = CameraEffects(options)
-    (out / "rgb").mkdir(parents=True, exist_ok=True)
-    if options.depth:
-        (out / "depth").mkdir(exist_ok=True)
-    names = [f"{t:.6f}" for t in stamps]
-    if len(set(names)) != len(names):
-        raise ConfigError(f"fps {options.fps} too high for 6-decimal timestamps")
+    degrade = Degradations(options, cam, float(stamps[0]), float(stamps[-1]), REF_DEPTH[options.scene])
+    writer = make_writer(options.layout, out, stamps, options.depth, options.kitti_sequence)
     gt_poses = poses(stamps)
-    for k, (t, name) in enumerate(tqdm(list(zip(stamps, names)), desc="synth", unit="frame", disable=not progress)):
-        img, inv_depth = render_frame(renderer, poses, float(t), options)
-        img = effects.apply(img, float(t), k)
-        if not cv2.imwrite(str(out / "rgb" / f"{name}.png"), img, PNG_PARAMS):
-            raise DatasetError(f"{out / 'rgb'}: cannot write {name}.png")
-        if options.depth:
-            z = np.where(inv_depth > 0, 5000.0 / np.maximum(inv_depth, 1e-9), 0.0)
-            cv2.imwrite(str(out / "depth" / f"{name}.png"), np.clip(z + 0.5, 0, 65535).astype(np.uint16),
-                        PNG_PARAMS)
-    with (out / "rgb.txt").open("w", encoding="utf-8") as fh:
-        fh.write("# synthetic colour images\n# timestamp filename\n")
-        fh.writelines(f"{n} rgb/{n}.png\n" for n in names)
-    if options.depth:
-        with (out / "depth.txt").open("w", encoding="utf-8") as fh:
-            fh.write("# synthetic depth images, 5000 per metre\n# timestamp filename\n")
-            fh.writelines(f"{n} depth/{n}.png\n" for n in names)
-    write_tum(out / "groundtruth.txt", Trajectory(stamps, gt_poses))
+    for k, t in enumerate(tqdm(stamps.tolist(), desc="synth", unit="frame", disable=not progress)):
+        img, inv_depth = render_frame(renderer, poses, t, options, degrade.scene_post(t))
+        if writer.grey:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        img = degrade.photometric(img, t)
+        img = degrade.compress(effects.apply(img, t, k))
+        writer.frame(k, img, inv_depth)
+    writer.finish(stamps, gt_poses, cam)
     save_camera(out / "camera.yaml", cam)
     if options.loop_gt:
         np.save(out / "loop_gt.npy", loop_ground_truth(gt_poses, options.loop_gt_dist, options.loop_gt_angle))
+    texture_seed = options.scene_seed if options.texture_seed is None else options.texture_seed
     meta = {"generator": "orbslam_hgcn synth", "options": meta_options, "texture_seed": texture_seed,
             "frames": len(stamps), "trajectory": traj_info, "scene": scene.layout}
+    if options.layout == "kitti":
+        meta["T_world_first_camera"] = gt_poses[0]  # KITTI poses are relative to the first camera
     (out / "scene.json").write_text(json.dumps(meta, indent=1, default=_json_default), encoding="utf-8")
     log.info("wrote %d frames to %s", len(stamps), out)
-    return out
+    return writer.dataset_dir
