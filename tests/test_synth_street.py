@@ -24,7 +24,7 @@ from orbslam_hgcn.datasets.synthetic_render import SceneRenderer
 from orbslam_hgcn.datasets.synthetic_scene import Scene, face, raycast
 from orbslam_hgcn.datasets.synthetic_trajectory import look_at
 from orbslam_hgcn.geometry.camera import PinholeCamera
-from orbslam_hgcn.geometry.se3 import inv_T, rotation_angle_deg
+from orbslam_hgcn.geometry.se3 import inv_T
 
 # Half-resolution KITTI camera: the street's geometry and motion, a quarter of the pixels.
 HALF = dict(width=620, height=188, fx=359.428, fy=359.428, cx=303.5964, cy=92.60785)
