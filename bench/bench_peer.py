@@ -1,0 +1,626 @@
+"""ORB-SLAM3 (monocular) and orbslam-hgcn side by side on one sequence.
+
+Each run starts both systems in turn, each in a subprocess of its own, on the same frames:
+
+- ours as a user runs it: ``orbslam-hgcn run PATH --out DIR`` (plus ``--ours-args``), read
+  back from its ``stats.json`` and ``KeyFrameTrajectory.txt``;
+- ORB-SLAM3 through the optional extra ``peer`` (the ``pyorbslam3`` bindings), with the
+  project's shipped ORB tree exported as a DBoW2 text vocabulary and a settings file in
+  ORB-SLAM3 v1.0's format written from the dataset's camera. The images are decoded here
+  and piped to the ORB-SLAM3 process, which hands frame i to ORB-SLAM3 no earlier than its
+  timestamp says the camera delivered it (as ORB-SLAM3's example programs pace their input;
+  like ``orbslam-hgcn run``, a gap of more than 1 s in the timestamps is waited 1 s). It
+  records every frame's tracking state and, after ``Shutdown``, the keyframe trajectory. A
+  crash or an ``exit`` inside ORB-SLAM3 ends that process only; the bench reports it and
+  goes on.
+
+ORB-SLAM3 groups features for BoW matching (tracking against the reference keyframe,
+triangulation in local mapping, relocalisation) at the vocabulary's depth minus 4: level 2
+(100 nodes) of its own 6-level ORBvoc.txt, but level 1 (10 nodes) of the shipped 5-level
+tree, where each search compares many more descriptor pairs. ``--peer-bow-level 2`` hands
+it a copy of the vocabulary whose header makes that level 2.
+
+Both keyframe trajectories are scored the same way: ATE after Sim(3) alignment against the
+dataset's ground truth, through :func:`orbslam_hgcn.pipeline.run.trajectory_ate`.
+
+Printed per run and system: frames given, frames tracked, frames lost, maps started,
+keyframes, keyframe ATE, frames/s, the median time from an image to its pose, wall time and
+CPU time; then the median over the runs. The ORB-SLAM3 process needs ``pyorbslam3`` and the
+OpenGL/X11 runtime libraries its wheel links against; when they are missing the bench says
+what to install and exits with status 2.
+
+    python bench/bench_peer.py --sequence ../shared/data/kitti00_first160/sequences/00 \\
+        --dataset kitti --runs 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import resource
+import shlex
+import shutil
+import statistics
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+PEER_REQUIREMENT = "pyorbslam3==0.1.1"
+# Debian/Ubuntu packages of the shared libraries pyorbslam3 0.1.1's wheel needs from the
+# host (found with ldd on its extension module); the rest it carries inside the wheel.
+APT_PACKAGES = {
+    "libOpenGL.so.0": "libopengl0",
+    "libGLX.so.0": "libglx0",
+    "libGL.so.1": "libgl1",
+    "libGLdispatch.so.0": "libglvnd0",
+    "libEGL.so.1": "libegl1",
+    "libX11.so.6": "libx11-6",
+    "libXext.so.6": "libxext6",
+    "libSM.so.6": "libsm6",
+    "libICE.so.6": "libice6",
+    "libxcb.so.1": "libxcb1",
+    "libXau.so.6": "libxau6",
+    "libXdmcp.so.6": "libxdmcp6",
+    "libuuid.so.1": "libuuid1",
+    "libbsd.so.0": "libbsd0",
+    "libz.so.1": "zlib1g",
+}
+APT_LINE = "apt-get install libopengl0 libgl1 libglx0 libegl1 libsm6 libice6 libx11-6 libxext6"
+# ORB features per image as ORB-SLAM's own settings files give them for each dataset.
+PEER_FEATURES = {"kitti": 2000, "tum": 1000, "euroc": 1000}
+MAX_WAIT_S = 1.0  # a longer wait is a gap in the timestamps: wait this long, restart the clock
+FRAME_HEADER = struct.Struct("<dIII")  # timestamp (s), height, width, channels; height 0 ends
+LOST_STATES = ("RECENTLY_LOST", "LOST")
+
+
+# --- the ORB-SLAM3 side: runs in the interpreter given by --peer-python ------------------
+# Nothing here imports orbslam_hgcn or OpenCV: that interpreter needs numpy and pyorbslam3.
+
+
+def peer_check() -> int:
+    """Print ``ok VERSION`` when pyorbslam3 loads here, else one line saying what to install
+    (exit status 2)."""
+    import importlib
+    import importlib.metadata
+    import importlib.util
+
+    if importlib.util.find_spec("numpy") is None:
+        print(f"numpy is missing in {sys.executable}: {sys.executable} -m pip install numpy '{PEER_REQUIREMENT}'")
+        return 2
+    spec = importlib.util.find_spec("pyorbslam3")
+    if spec is None:
+        print(f"pyorbslam3 is not installed in {sys.executable}: "
+              f"{sys.executable} -m pip install '{PEER_REQUIREMENT}' (or pip install -e '.[peer]')")
+        return 2
+    try:
+        importlib.import_module("pyorbslam3")
+    except ImportError as exc:
+        missing = re.findall(r"(lib[\w.+-]*\.so[\w.]*)", str(exc))
+        missing += ldd_not_found(spec.submodule_search_locations or [])
+        missing = sorted(set(missing))
+        named = sorted({APT_PACKAGES[m] for m in missing if m in APT_PACKAGES})
+        what = ", ".join(missing) or str(exc)
+        pkgs = f" (Debian/Ubuntu: {' '.join(named)})" if named else ""
+        print(f"pyorbslam3 cannot load {what}{pkgs}; install the OpenGL/X11 runtime libraries it links "
+              f"against: {APT_LINE}")
+        return 2
+    print("ok", importlib.metadata.version("pyorbslam3"))
+    return 0
+
+
+def ldd_not_found(package_dirs: list[str]) -> list[str]:
+    """Libraries that ``ldd`` reports as not found for pyorbslam3's extension modules."""
+    if shutil.which("ldd") is None:
+        return []
+    out = []
+    for d in package_dirs:
+        for so in Path(d).glob("_core*.so"):
+            try:
+                text = subprocess.run(["ldd", str(so)], capture_output=True, text=True, timeout=30).stdout
+            except (OSError, subprocess.SubprocessError):
+                continue
+            out += re.findall(r"^\s*(\S+) => not found", text, flags=re.M)
+    return out
+
+
+def read_exact(stream: Any, n: int) -> bytes | None:
+    data = stream.read(n)
+    return data if len(data) == n else None
+
+
+def peer_child(vocab: str, settings: str, out: str, speed: float) -> int:
+    """Run ORB-SLAM3 monocular over the frames piped to stdin (FRAME_HEADER then the pixels),
+    pacing them by their timestamps; write frames.tsv, KeyFrameTrajectory.txt and result.json
+    into ``out``."""
+    import numpy as np
+    import pyorbslam3
+
+    out_dir = Path(out)
+    t0 = time.perf_counter()
+    slam = pyorbslam3.Slam(vocab, settings, pyorbslam3.Sensor.MONOCULAR, use_viewer=False)
+    load_s = time.perf_counter() - t0
+    stdin = sys.stdin.buffer
+    anchor: tuple[float, float] | None = None  # (perf_counter, timestamp) of the clock's start
+    first = last = None
+    n = 0
+    with (out_dir / "frames.tsv").open("w") as tsv:
+        tsv.write("index\ttimestamp\tstate\tpoints\ttrack_ms\tlate_ms\n")
+        while True:
+            head = read_exact(stdin, FRAME_HEADER.size)
+            if head is None:
+                break
+            ts, h, w, c = FRAME_HEADER.unpack(head)
+            if h == 0:
+                break
+            data = read_exact(stdin, h * w * c)
+            if data is None:
+                break
+            image = np.frombuffer(data, np.uint8).reshape((h, w, c) if c > 1 else (h, w))
+            now = time.perf_counter()
+            if anchor is None:
+                anchor = (now, ts)
+            elif speed > 0:
+                wait = anchor[0] + (ts - anchor[1]) / speed - now
+                if wait > MAX_WAIT_S:
+                    time.sleep(MAX_WAIT_S)
+                    anchor = (time.perf_counter(), ts)
+                elif wait > 0:
+                    time.sleep(wait)
+            ta = time.perf_counter()
+            due = anchor[0] + (ts - anchor[1]) / speed if speed > 0 else ta
+            if first is None:
+                first = ta
+            result = slam.track_monocular(image, ts)
+            last = time.perf_counter()
+            tsv.write(f"{n}\t{ts:.9f}\t{result.state.name}\t{result.num_tracked_points}\t"
+                      f"{1000 * (last - ta):.3f}\t{1000 * max(0.0, ta - due):.3f}\n")
+            tsv.flush()
+            n += 1
+    ts0 = time.perf_counter()
+    slam.shutdown()
+    shutdown_s = time.perf_counter() - ts0
+    slam.save_keyframe_trajectory_tum(str(out_dir / "KeyFrameTrajectory.txt"))
+    summary = {
+        "frames": n, "load_s": load_s, "shutdown_s": shutdown_s,
+        "loop_s": (last - first) if n else 0.0,
+        "wall_s": (ts0 + shutdown_s - first) if n else 0.0,
+    }
+    (out_dir / "result.json").write_text(json.dumps(summary, indent=1))
+    return 0
+
+
+# --- the bench: runs in the project's interpreter ----------------------------------------
+
+
+def fail(message: str) -> None:
+    print(message)
+    sys.exit(2)
+
+
+def repo_state() -> str:
+    root = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, timeout=30).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=30).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return f"{head}{' with uncommitted changes' if dirty else ''}" if head else "unknown"
+
+
+def ours_command() -> list[str]:
+    exe = Path(sys.executable).with_name("orbslam-hgcn")
+    if exe.is_file():
+        return [str(exe)]
+    found = shutil.which("orbslam-hgcn")
+    return [found] if found else [sys.executable, "-m", "orbslam_hgcn"]
+
+
+def check_peer(peer_python: str) -> str:
+    """pyorbslam3's version in ``peer_python``, or exit 2 with what to install."""
+    if shutil.which(peer_python) is None and not Path(peer_python).is_file():
+        fail(f"--peer-python {peer_python}: no such interpreter")
+    try:
+        proc = subprocess.run([peer_python, str(Path(__file__).resolve()), "--peer-check"],
+                              capture_output=True, text=True, timeout=120)
+    except (OSError, subprocess.SubprocessError) as exc:
+        fail(f"--peer-python {peer_python}: cannot run it ({exc})")
+    lines = [ln for ln in proc.stdout.splitlines() if ln.strip()]
+    if proc.returncode == 0 and lines and lines[-1].startswith("ok "):
+        return lines[-1].split()[1]
+    if lines:
+        fail(lines[-1])
+    err = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    fail(f"{peer_python} failed the pyorbslam3 check: {err[-1] if err else f'exit status {proc.returncode}'}")
+    return ""
+
+
+def export_vocabulary(target: Path) -> Path:
+    """The shipped ORB tree as a DBoW2 text file at ``target`` (exported again when the
+    shipped tree is newer)."""
+    import orbslam_hgcn
+
+    shipped = Path(orbslam_hgcn.__file__).parent / "data" / "vocab_orb_default.npz"
+    if target.is_file() and (not shipped.is_file() or target.stat().st_mtime >= shipped.stat().st_mtime):
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_suffix(".part.txt")
+    proc = subprocess.run(ours_command() + ["vocab", "export", "orb", "--format", "dbow2", "--out", str(tmp)],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        err = [ln for ln in (proc.stdout + proc.stderr).splitlines() if ln.strip()]
+        fail(f"exporting the ORB vocabulary failed: {err[-1] if err else proc.returncode}")
+    os.replace(tmp, target)
+    return target
+
+
+def vocabulary_with_bow_level(vocab: Path, level: int, out: Path) -> Path:
+    """A copy of the DBoW2 text vocabulary ``vocab`` whose header gives the depth
+    ``level + 4``, so that ORB-SLAM3, which groups features at depth - 4 (DBoW2 levelsup 4),
+    groups them at tree level ``level``. Nodes, words and weights are unchanged."""
+    with vocab.open("r", encoding="utf-8", errors="replace") as src:
+        head = src.readline().split()
+        if len(head) != 4 or not all(h.lstrip("-").isdigit() for h in head):
+            fail(f"{vocab}:1: expected 'k L scoring weighting', found {' '.join(head)!r}")
+        depth = int(head[1])
+        if not 1 <= level < depth:
+            fail(f"--peer-bow-level {level}: must lie between 1 and {depth - 1} for the {depth}-level tree {vocab}")
+        target = out / f"{vocab.stem}_bow_level{level}.txt"
+        with target.open("w", encoding="utf-8") as dst:
+            dst.write(f"{head[0]} {level + 4} {head[2]} {head[3]}\n")
+            shutil.copyfileobj(src, dst, 1 << 20)
+    return target
+
+
+def yaml_real(x: float) -> str:
+    """A float as OpenCV's YAML reads a real (ORB-SLAM3 v1.0 rejects an integer there)."""
+    s = repr(float(x))
+    if "e" in s and "." not in s.split("e")[0]:
+        return f"{x:.9e}"
+    return s if ("." in s or "e" in s) else s + ".0"
+
+
+def write_settings(path: Path, camera: Any, n_features: int) -> Path:
+    """ORB-SLAM3 v1.0 settings (``File.version: "1.0"``) for a pinhole monocular camera."""
+    d = list(camera.dist_coeffs)
+    lines = [
+        "%YAML:1.0",
+        f"# {camera.name}: written by bench/bench_peer.py",
+        'File.version: "1.0"',
+        'Camera.type: "PinHole"',
+        f"Camera1.fx: {yaml_real(camera.fx)}",
+        f"Camera1.fy: {yaml_real(camera.fy)}",
+        f"Camera1.cx: {yaml_real(camera.cx)}",
+        f"Camera1.cy: {yaml_real(camera.cy)}",
+        f"Camera1.k1: {yaml_real(d[0])}",
+        f"Camera1.k2: {yaml_real(d[1])}",
+        f"Camera1.p1: {yaml_real(d[2])}",
+        f"Camera1.p2: {yaml_real(d[3])}",
+    ]
+    if d[4] != 0.0:
+        lines.append(f"Camera1.k3: {yaml_real(d[4])}")
+    lines += [
+        f"Camera.width: {int(camera.width)}",
+        f"Camera.height: {int(camera.height)}",
+        f"Camera.fps: {max(1, round(camera.fps))}",
+        "# The frames are given grey, so the colour order does not matter.",
+        "Camera.RGB: 0",
+        f"ORBextractor.nFeatures: {int(n_features)}",
+        "ORBextractor.scaleFactor: 1.2",
+        "ORBextractor.nLevels: 8",
+        "ORBextractor.iniThFAST: 20",
+        "ORBextractor.minThFAST: 7",
+        # Read by ORB-SLAM3 even with the viewer off.
+        "Viewer.KeyFrameSize: 0.1",
+        "Viewer.KeyFrameLineWidth: 1.0",
+        "Viewer.GraphLineWidth: 1.0",
+        "Viewer.PointSize: 2.0",
+        "Viewer.CameraSize: 0.15",
+        "Viewer.CameraLineWidth: 2.0",
+        "Viewer.ViewpointX: 0.0",
+        "Viewer.ViewpointY: -100.0",
+        "Viewer.ViewpointZ: -0.1",
+        "Viewer.ViewpointF: 2000.0",
+    ]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def keyframe_ate(gt: Any, path: Path) -> dict[str, Any]:
+    from orbslam_hgcn.errors import OrbslamError
+    from orbslam_hgcn.pipeline.run import trajectory_ate
+    from orbslam_hgcn.trajectory import read_tum
+
+    if gt is None:
+        return {"error": "no ground truth"}
+    if not path.is_file():
+        return {"error": f"{path.name} not written"}
+    try:
+        est = read_tum(path)
+    except OrbslamError as exc:
+        return {"error": str(exc)}
+    return trajectory_ate(gt, est)
+
+
+def tail(path: Path, n: int = 1) -> str:
+    try:
+        lines = [ln.strip() for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return ""
+    return " | ".join(lines[-n:])
+
+
+def run_ours(args: argparse.Namespace, kind: str, out: Path, gt: Any) -> dict[str, Any]:
+    cmd = ours_command() + ["run", str(args.sequence), "--out", str(out), "--dataset", kind, "--no-progress"]
+    if args.max_frames is not None:
+        cmd += ["--max-frames", str(args.max_frames)]
+    if args.config is not None:
+        cmd += ["--config", args.config]
+    if args.speed != 1.0:
+        cmd += ["--speed", str(args.speed)]
+    cmd += shlex.split(args.ours_args)
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "run.log"
+    c0, t0 = children_cpu(), time.perf_counter()
+    with log.open("w") as fh:
+        fh.write(" ".join(shlex.quote(c) for c in cmd) + "\n")
+        fh.flush()
+        rc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT).returncode
+    row: dict[str, Any] = {"system": "orbslam-hgcn", "cpu_s": children_cpu() - c0, "call_s": time.perf_counter() - t0}
+    stats_path = out / "stats.json"
+    if rc != 0 or not stats_path.is_file():
+        row["error"] = f"exit status {rc}: {tail(log)} (log: {log})"
+        return row
+    s = json.loads(stats_path.read_text())
+    f = s["frames"]
+    row.update(
+        frames=f["frames"], tracked=f["tracked"], lost=f["lost"],
+        maps=sum(1 for e in s.get("events", []) if e.get("event") == "initialized"),
+        keyframes=s["keyframes"], wall_s=float(s["wall_s"]),
+        frame_ms=float(s["timing_ms"]["frame_total"]["median"]),
+        ate=keyframe_ate(gt, out / "KeyFrameTrajectory.txt"),
+    )
+    row["fps"] = row["frames"] / row["wall_s"] if row["wall_s"] > 0 else 0.0
+    return row
+
+
+def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, settings: Path, out: Path,
+             gt: Any) -> dict[str, Any]:
+    import numpy as np
+
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "orbslam3.log"
+    cmd = [args.peer_python, str(Path(__file__).resolve()), "--peer-child", "--vocab", str(vocab),
+           "--settings", str(settings), "--out", str(out), "--speed", str(args.speed)]
+    duration = float(sequence.timestamps[n - 1] - sequence.timestamps[0]) if n else 0.0
+    limit = 300.0 + 5.0 * (duration / args.speed if args.speed > 0 else 0.0) + 2.0 * n
+    c0, t0 = children_cpu(), time.perf_counter()
+    with log.open("w") as fh:
+        proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=fh, stderr=subprocess.STDOUT)
+        assert proc.stdin is not None
+        killed = threading.Event()
+
+        def kill() -> None:  # a hung ORB-SLAM3 must not hang the bench
+            killed.set()
+            proc.kill()
+
+        watchdog = threading.Timer(limit, kill)
+        watchdog.start()
+        try:
+            for i in range(n):
+                rec = sequence[i]
+                image = np.ascontiguousarray(rec.image, dtype=np.uint8)
+                h, w = image.shape[:2]
+                c = image.shape[2] if image.ndim == 3 else 1
+                proc.stdin.write(FRAME_HEADER.pack(float(rec.timestamp), h, w, c))
+                proc.stdin.write(image.data)
+            proc.stdin.write(FRAME_HEADER.pack(0.0, 0, 0, 0))
+            proc.stdin.close()
+        except (BrokenPipeError, ValueError):
+            pass  # ORB-SLAM3 ended early; its exit status says how
+        finally:
+            if not proc.stdin.closed:  # also on an error here: the process then ends at once
+                try:
+                    proc.stdin.close()
+                except BrokenPipeError:
+                    pass
+            proc.wait()
+            watchdog.cancel()
+    note = f"killed after {limit:.0f} s" if killed.is_set() else ""
+    row: dict[str, Any] = {"system": "ORB-SLAM3", "cpu_s": children_cpu() - c0, "call_s": time.perf_counter() - t0}
+    rc = proc.returncode
+    states, track_ms = [], []
+    tsv = out / "frames.tsv"
+    if tsv.is_file():
+        for line in tsv.read_text().splitlines()[1:]:
+            fields = line.split("\t")
+            if len(fields) == 6:
+                states.append(fields[2])
+                track_ms.append(float(fields[4]))
+    result_path = out / "result.json"
+    if rc != 0 or not result_path.is_file():
+        why = note or (f"signal {-rc}" if rc is not None and rc < 0 else f"exit status {rc}")
+        row["error"] = f"ORB-SLAM3 ended early ({why}) after {len(states)} of {n} frames: {tail(log)} (log: {log})"
+        return row
+    res = json.loads(result_path.read_text())
+    inits = sum(1 for a, b in zip(["NOT_INITIALIZED"] + states, states) if a == "NOT_INITIALIZED" and b == "OK")
+    kf_path = out / "KeyFrameTrajectory.txt"
+    keyframes = sum(1 for ln in kf_path.read_text().splitlines() if ln.strip()) if kf_path.is_file() else 0
+    row.update(
+        frames=len(states), tracked=states.count("OK"), lost=sum(s in LOST_STATES for s in states), maps=inits,
+        keyframes=keyframes, wall_s=float(res["wall_s"]), frame_ms=statistics.median(track_ms) if track_ms else 0.0,
+        load_s=float(res["load_s"]), ate=keyframe_ate(gt, kf_path),
+    )
+    row["fps"] = row["frames"] / row["wall_s"] if row["wall_s"] > 0 else 0.0
+    return row
+
+
+COLUMNS = (
+    ("run", 4), ("system", 13), ("frames", 6), ("tracked", 7), ("lost", 5), ("maps", 4), ("KFs", 4),
+    ("KF ATE cm", 10), ("pairs", 5), ("frames/s", 8), ("ms/frame", 8), ("wall s", 7), ("CPU s", 6),
+)
+
+
+def format_row(run: str, row: dict[str, Any]) -> str:
+    if "error" in row:
+        return f"{run:>4s} {row['system']:<13s} failed: {row['error']}"
+    ate = row["ate"]
+    ate_s = f"{100 * ate['rmse_m']:.2f}" if "rmse_m" in ate else "n/a"
+    pairs = str(ate.get("pairs", "-"))
+    vals = (run, row["system"], f"{row['frames']:.0f}", f"{row['tracked']:.0f}", f"{row['lost']:.0f}",
+            f"{row['maps']:.0f}", f"{row['keyframes']:.0f}", ate_s, pairs, f"{row['fps']:.2f}",
+            f"{row['frame_ms']:.1f}", f"{row['wall_s']:.1f}", f"{row['cpu_s']:.1f}")
+    return " ".join(f"{v:<{w}s}" if name == "system" else f"{v:>{w}s}" for (name, w), v in zip(COLUMNS, vals))
+
+
+def median_row(rows: list[dict[str, Any]], system: str) -> dict[str, Any] | None:
+    ok = [r for r in rows if "error" not in r]
+    if not ok:
+        return None
+    med: dict[str, Any] = {"system": system}
+    for key in ("frames", "tracked", "lost", "maps", "keyframes", "fps", "frame_ms", "wall_s", "cpu_s"):
+        med[key] = statistics.median(r[key] for r in ok)
+    ates = [r["ate"] for r in ok if "rmse_m" in r["ate"]]
+    med["ate"] = ({"rmse_m": statistics.median(a["rmse_m"] for a in ates), "pairs": f"{len(ates)}/{len(rows)}"}
+                  if ates else {"error": "none"})
+    return med
+
+
+def ours_features(args: argparse.Namespace) -> int | None:
+    """ORB features per image that ``orbslam-hgcn run`` will use (its --config's orb section)."""
+    from orbslam_hgcn.config import CONFIG_DIR
+    from orbslam_hgcn.errors import OrbslamError
+    from orbslam_hgcn.pipeline.system import Configs
+
+    config = args.config
+    extra = shlex.split(args.ours_args)
+    for i, tok in enumerate(extra):
+        if tok == "--config" and i + 1 < len(extra):
+            config = extra[i + 1]
+        elif tok.startswith("--config="):
+            config = tok.split("=", 1)[1]
+    if config is not None and not Path(config).is_file() and (CONFIG_DIR / f"{config}.yaml").is_file():
+        config = str(CONFIG_DIR / f"{config}.yaml")
+    try:
+        return Configs.from_yaml(config).orb.n_features
+    except OrbslamError:
+        return None
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sequence", type=Path, help="dataset folder (or video file), as for orbslam-hgcn run")
+    p.add_argument("--dataset", default=None, help="tum, euroc, kitti, folder or video (default: detected)")
+    p.add_argument("--config", default=None, help="camera YAML or shipped name, for both systems (as run --config)")
+    p.add_argument("--runs", type=int, default=3, help="runs of each system (default 3); every run and the median")
+    p.add_argument("--max-frames", type=int, default=None, help="at most this many frames")
+    p.add_argument("--vocab", type=Path, default=None,
+                   help="DBoW2 text vocabulary for ORB-SLAM3 (default: the project's shipped ORB tree, "
+                   "exported once to ~/.cache/orbslam_hgcn/peer/)")
+    p.add_argument("--ours-args", default="", help="extra arguments for orbslam-hgcn run, e.g. '--sequential'")
+    p.add_argument("--peer-bow-level", type=int, default=None, metavar="N",
+                   help="tree level at which ORB-SLAM3 groups features for BoW matching; it uses the "
+                   "vocabulary's depth - 4: level 2 of its 6-level ORBvoc.txt, level 1 (10 nodes) of the "
+                   "shipped 5-level tree. Given, ORB-SLAM3 gets a copy of the vocabulary whose header "
+                   "says depth N + 4 (same words and weights)")
+    p.add_argument("--peer-python", default=sys.executable,
+                   help="interpreter with pyorbslam3 installed (default: this one)")
+    p.add_argument("--peer-features", type=int, default=None,
+                   help="ORB-SLAM3's ORBextractor.nFeatures (default: 2000 for KITTI, else 1000)")
+    p.add_argument("--speed", type=float, default=1.0,
+                   help="both systems take frames at this many times the camera's rate (0: unpaced)")
+    p.add_argument("--out", type=Path, default=None, help="folder for the runs' outputs (default: a new temp folder)")
+    p.add_argument("--peer-check", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--peer-child", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--settings", default=None, help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.peer_check:
+        return peer_check()
+    if args.peer_child:
+        return peer_child(str(args.vocab), args.settings, str(args.out), args.speed)
+    if args.sequence is None:
+        p.error("--sequence is required")
+    if args.runs < 1:
+        p.error("--runs must be at least 1")
+    if args.speed < 0:
+        p.error("--speed must not be negative")
+
+    version = check_peer(args.peer_python)
+
+    from orbslam_hgcn.datasets.factory import detect_kind, open_sequence
+    from orbslam_hgcn.errors import OrbslamError
+    from orbslam_hgcn.pipeline.run import camera_from_config
+
+    try:
+        kind = (args.dataset or detect_kind(args.sequence)).lower()
+        camera = camera_from_config(args.config) if args.config else None
+        sequence = open_sequence(kind, args.sequence, camera)
+    except OrbslamError as exc:
+        fail(str(exc))
+    n = len(sequence) if args.max_frames is None else max(0, min(len(sequence), args.max_frames))
+    if n == 0:
+        fail("no frames to run")
+    gt = sequence.ground_truth if sequence.ground_truth is not None and len(sequence.ground_truth) >= 3 else None
+    out = args.out or Path(tempfile.mkdtemp(prefix="bench_peer_"))
+    out.mkdir(parents=True, exist_ok=True)
+    if args.vocab is not None:
+        if not args.vocab.is_file():
+            fail(f"--vocab {args.vocab}: file not found")
+        vocab = args.vocab.resolve()
+    else:
+        vocab = export_vocabulary(Path.home() / ".cache" / "orbslam_hgcn" / "peer" / "ORBvoc_orb_default.txt")
+    if args.peer_bow_level is not None:
+        vocab = vocabulary_with_bow_level(vocab, args.peer_bow_level, out)
+    peer_features = args.peer_features or PEER_FEATURES.get(kind, 1000)
+    settings = write_settings(out / "orbslam3_settings.yaml", sequence.camera, peer_features)
+
+    cam = sequence.camera
+    print(f"{sequence.name}: {n} of {len(sequence)} frames, {cam.width}x{cam.height}, {cam.fps:.1f} Hz, "
+          f"ground truth: {'yes' if gt is not None else 'no'}")
+    print(f"orbslam_hgcn at {repo_state()}: orbslam-hgcn run {args.ours_args or '(defaults)'}; "
+          f"{ours_features(args) or '?'} ORB features")
+    print(f"ORB-SLAM3 (pyorbslam3 {version}, monocular, viewer off): {peer_features} ORB features, "
+          f"vocabulary {vocab}{f', BoW matching at tree level {args.peer_bow_level}' if args.peer_bow_level else ''}")
+    pace = "as fast as they are processed" if args.speed == 0 else f"at {args.speed:g}x the camera's rate"
+    print(f"frames {pace}; {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the start; "
+          f"outputs in {out}")
+    print("tracked: ours, frames with a pose in the final map; ORB-SLAM3, frames in state OK. lost: ours LOST, "
+          "ORB-SLAM3 RECENTLY_LOST or LOST. maps: initialisations (a new map after each reset or loss). "
+          "KFs: keyframes of the final map. KF ATE: RMSE after Sim(3) alignment. frames/s: frames / wall s; "
+          "wall s: ours, stats.json wall_s (its frame loop, with the start of its extraction process and the "
+          "draining of its stages); ORB-SLAM3, first frame to Shutdown() returned. ms/frame: median from an "
+          "image to its pose. CPU s: the whole process tree, start-up included.")
+    header = " ".join(f"{name:<{w}s}" if name == "system" else f"{name:>{w}s}" for name, w in COLUMNS)
+    print(header)
+    rows: dict[str, list[dict[str, Any]]] = {"orbslam-hgcn": [], "ORB-SLAM3": []}
+    for i in range(args.runs):
+        order = ("ours", "peer") if i % 2 == 0 else ("peer", "ours")
+        for who in order:
+            if who == "ours":
+                row = run_ours(args, kind, out / f"run{i + 1}_ours", gt)
+            else:
+                row = run_peer(args, sequence, n, vocab, settings, out / f"run{i + 1}_orbslam3", gt)
+            rows[row["system"]].append(row)
+            print(format_row(str(i + 1), row), flush=True)
+    for system, rs in rows.items():
+        med = median_row(rs, system)
+        print(format_row("med", med) if med else f" med {system:<13s} every run failed")
+    (out / "bench_peer.json").write_text(json.dumps(rows, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
