@@ -1,10 +1,12 @@
 """Speed of the synthetic sequence renderer on one core.
 
 Prints, per option set, the texture build time, the median and mean render time per
-frame (render plus camera effects) and the frames/s that gives, and the frames/s with
-PNG encoding included (what ``orbslam-hgcn synth`` achieves before disk writes).
+frame (render plus camera effects and degradations) and the frames/s that gives, and the
+frames/s with PNG encoding included (what ``orbslam-hgcn synth`` achieves before disk
+writes). The street makes its textures when they first come into view, so its texture
+time is counted in its frames (the mean and p95 more than the median).
 
-    OMP_NUM_THREADS=1 python bench/bench_synth.py [--frames 900] [--stride 3]
+    OMP_NUM_THREADS=1 python bench/bench_synth.py [--frames 900] [--stride 3] [--only street]
 """
 
 from __future__ import annotations
@@ -19,8 +21,19 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from orbslam_hgcn.datasets.synthetic import PNG_PARAMS, SynthOptions, build_sequence, CameraEffects, render_frame  # noqa: E402
-from orbslam_hgcn.datasets.synthetic_render import SceneRenderer  # noqa: E402
+from orbslam_hgcn.datasets.synthetic import (  # noqa: E402
+    PRESETS,
+    REF_DEPTH,
+    CameraEffects,
+    SynthOptions,
+    build_sequence,
+    camera_frame,
+    make_renderer,
+    street_options,
+    synth_options,
+)
+from orbslam_hgcn.datasets.synthetic_degrade import Degradations  # noqa: E402
+from orbslam_hgcn.datasets.synthetic_output import PNG_PARAMS  # noqa: E402
 
 TUM_GT = Path(__file__).resolve().parents[1].parent / "shared/data/tum_fr3_long_office_household_sample/groundtruth.txt"
 
@@ -28,17 +41,16 @@ TUM_GT = Path(__file__).resolve().parents[1].parent / "shared/data/tum_fr3_long_
 def bench(name: str, options: SynthOptions, stride: int) -> None:
     t0 = time.perf_counter()
     scene, poses, stamps, _ = build_sequence(options)
-    texture_seed = options.scene_seed if options.texture_seed is None else options.texture_seed
-    renderer = SceneRenderer(scene, options.camera, texture_seed, options.repeated_texture,
-                             texel_scale=options.texel_scale)
+    renderer = make_renderer(scene, options)
     build = time.perf_counter() - t0
     effects = CameraEffects(options)
+    degrade = Degradations(options, options.camera, float(stamps[0]), float(stamps[-1]), REF_DEPTH[options.scene])
+    grey = options.layout == "kitti"
     render_s, total_s, draws = [], [], []
     for k in range(0, len(stamps), stride):
         t = float(stamps[k])
         t0 = time.perf_counter()
-        img, _ = render_frame(renderer, poses, t, options)
-        img = effects.apply(img, t, k)
+        img, _ = camera_frame(renderer, poses, t, k, options, effects, degrade, grey)
         t1 = time.perf_counter()
         cv2.imencode(".png", img, PNG_PARAMS)
         t2 = time.perf_counter()
@@ -72,6 +84,14 @@ def main() -> None:
     ]
     if args.gt.is_file():
         sets.append(("replay fr3 long office", SynthOptions(trajectory="replay", gt=str(args.gt), frames=n)))
+        sets.append(("preset fr3_replay_hard", synth_options("fr3_replay_hard", gt=str(args.gt), frames=n)))
+    street_n = max(1, n // 3)  # 10 Hz: the same duration as the 30 Hz sets
+    sets += [
+        ("street, clean", street_options(frames=street_n)),
+        ("street, motion blur (flow)", street_options(frames=street_n, motion_blur=True, motion_blur_mode="flow",
+                                                      shutter=PRESETS["street"]["shutter"])),
+        ("preset street", synth_options("street", frames=street_n)),
+    ]
     for name, options in sets:
         if args.only is None or args.only in name:
             bench(name, options, args.stride)

@@ -319,6 +319,18 @@ def render_frame(renderer: SceneRenderer, poses, t: float, options: SynthOptions
     return acc * np.float32(1.0 / n), inv_depth
 
 
+def camera_frame(renderer, poses, t: float, k: int, options: SynthOptions, effects: CameraEffects,
+                 degrade: Degradations, grey: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Frame k at time t as the camera delivers it: ((H, W[, 3]) uint8 image, (H, W) float32
+    inverse depth). Render (with fog) and blur, grey (KITTI layout), vignetting and
+    exposure steps, exposure drift and noise, rounding, JPEG."""
+    img, inv_depth = render_frame(renderer, poses, t, options, degrade.scene_post(t))
+    if grey:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    img = degrade.photometric(img, t)
+    return degrade.compress(effects.apply(img, t, k)), inv_depth
+
+
 def _image_motion(cam: PinholeCamera, inv_depth: np.ndarray, T_wc: np.ndarray, ends: np.ndarray) -> float:
     """Largest displacement (px) of a 5x5 grid of scene points between the two poses ``ends``."""
     us = np.linspace(0, cam.width - 1, 5)
@@ -399,12 +411,7 @@ def render_sequence(out_dir: str | Path, options: SynthOptions = SynthOptions(),
     writer = make_writer(options.layout, out, stamps, options.depth, options.kitti_sequence)
     gt_poses = poses(stamps)
     for k, t in enumerate(tqdm(stamps.tolist(), desc="synth", unit="frame", disable=not progress)):
-        img, inv_depth = render_frame(renderer, poses, t, options, degrade.scene_post(t))
-        if writer.grey:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-        img = degrade.photometric(img, t)
-        img = degrade.compress(effects.apply(img, t, k))
-        writer.frame(k, img, inv_depth)
+        writer.frame(k, *camera_frame(renderer, poses, t, k, options, effects, degrade, writer.grey))
     writer.finish(stamps, gt_poses, cam)
     save_camera(out / "camera.yaml", cam)
     if options.loop_gt:
