@@ -1,6 +1,6 @@
 """Configuration: the camera YAML schema and frozen per-stage dataclasses.
 
-Camera files (``configs/*.yaml``) use one flat schema::
+Camera files (the shipped ones in ``orbslam_hgcn/configs/*.yaml``) use one flat schema::
 
     name: tum_fr3            # free text
     model: pinhole           # the only model supported
@@ -14,7 +14,9 @@ Camera files (``configs/*.yaml``) use one flat schema::
     distortion: [0, 0, 0, 0, 0]   # OpenCV radial-tangential k1 k2 p1 p2 [k3]
 
 The same keys may instead sit under a ``camera:`` section of a larger file. Every value is
-validated on load; an error names the file and the key.
+validated on load; an error names the file and the key. A file may also carry stage
+sections (``orb:``, ``tracking:``, ...; see :class:`~orbslam_hgcn.pipeline.system.Configs`):
+each shipped camera carries the settings ORB-SLAM's example files use for it.
 
 Stage configs are frozen dataclasses defined below, each with its defaults beside their
 meaning; :func:`section_from_yaml` fills one from a YAML section and rejects unknown keys.
@@ -23,6 +25,7 @@ meaning; :func:`section_from_yaml` fills one from a YAML section and rejects unk
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import math
 from pathlib import Path
 from typing import Any, TypeVar
@@ -32,7 +35,22 @@ import yaml
 from orbslam_hgcn.errors import ConfigError, where
 from orbslam_hgcn.geometry.camera import PinholeCamera
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+# The shipped camera configs, package data (read the same from a checkout or a wheel).
+CONFIG_DIR = Path(str(importlib.resources.files("orbslam_hgcn") / "configs"))
+
+
+def resolve_config(path: str | Path) -> Path:
+    """The file of a config argument: a path as given, or the bare name of a shipped config
+    (``tum_fr3`` finds ``tum_fr3.yaml`` among the shipped configs) when no such file exists."""
+    p = Path(path)
+    if not p.is_file() and not p.suffix and (CONFIG_DIR / f"{p.name}.yaml").is_file():
+        return CONFIG_DIR / f"{p.name}.yaml"
+    return p
+
+
+def shipped_configs() -> list[str]:
+    """Names of the shipped configs."""
+    return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
 
 T = TypeVar("T")
 
@@ -126,13 +144,47 @@ def camera_from_dict(data: dict[str, Any], path: str | Path = "<camera>") -> Pin
 def load_camera(path: str | Path) -> PinholeCamera:
     """Load and validate a camera YAML file.
 
-    ``path`` may also be the bare name of a shipped config (``tum_fr3`` finds
-    ``configs/tum_fr3.yaml``).
+    ``path`` may also be the bare name of a shipped config (``tum_fr3``).
     """
-    p = Path(path)
-    if not p.is_file() and not p.suffix and (CONFIG_DIR / f"{p.name}.yaml").is_file():
-        p = CONFIG_DIR / f"{p.name}.yaml"
+    p = resolve_config(path)
     return camera_from_dict(load_yaml(p), p)
+
+
+# A dataset of one of these kinds whose camera matches no shipped config takes the stage
+# settings of the first shipped config of its family (ORB-SLAM's settings for that dataset).
+KIND_FAMILIES = {"kitti": "kitti_", "tum": "tum_", "euroc": "euroc_"}
+
+
+def _same_camera(a: PinholeCamera, b: PinholeCamera, tol_px: float = 0.5) -> bool:
+    return (a.width, a.height) == (b.width, b.height) and all(
+        abs(x - y) <= tol_px for x, y in ((a.fx, b.fx), (a.fy, b.fy), (a.cx, b.cx), (a.cy, b.cy))
+    )
+
+
+def stage_sections(data: dict[str, Any]) -> dict[str, Any]:
+    """The stage sections (every mapping but ``camera``) of a config file's contents."""
+    return {k: v for k, v in data.items() if isinstance(v, dict) and k != "camera"}
+
+
+def dataset_settings(camera: PinholeCamera, kind: str | None = None) -> tuple[Path | None, dict[str, Any]]:
+    """The stage settings a run on a dataset with ``camera`` starts from (before --config).
+
+    The shipped config whose camera is ``camera`` (same size, focal lengths and principal
+    point within 0.5 px); otherwise, for a dataset ``kind`` with a family of shipped
+    configs (KITTI, TUM, EuRoC), the first of that family; otherwise none. Returns (the
+    config's path or None, its stage sections)."""
+    names = shipped_configs()
+    for name in names:
+        path = CONFIG_DIR / f"{name}.yaml"
+        data = load_yaml(path)
+        if _same_camera(camera_from_dict(data, path), camera):
+            return path, stage_sections(data)
+    prefix = KIND_FAMILIES.get((kind or "").lower())
+    family = [n for n in names if prefix and n.startswith(prefix)]
+    if family:
+        path = CONFIG_DIR / f"{family[0]}.yaml"
+        return path, stage_sections(load_yaml(path))
+    return None, {}
 
 
 def camera_to_dict(cam: PinholeCamera) -> dict[str, Any]:
@@ -475,6 +527,10 @@ class TrackingConfig:
     # ... once the map holds this many keyframes (a young map, refined by every keyframe,
     # gets them as fast as ORB-SLAM would: local mapping of a few keyframes is quick).
     min_keyframe_interval_from: int = 5
+    # c1c: a frame tracking fewer points than this makes a keyframe whatever the interval
+    # (the local map is running out), and in threaded runs the tracker waits for a busy
+    # local mapping to take it (threads.keyframe_wait_s). Twice min_inliers.
+    keyframe_urgent_inliers: int = 60
     keyframe_min_inliers: int = 15
     # A map with at most this many keyframes is discarded when tracking is lost, and
     # initialisation starts over (ORB-SLAM2: 5).
@@ -662,6 +718,11 @@ class ThreadsConfig:
     # wait). At the camera's rate mapping rarely falls that far behind; a run faster than
     # the camera would otherwise outrun it until tracking is lost.
     keyframe_wait_s: float = 0.5
+    # Paced threaded runs (speed > 0) with prefetch: a frame is dropped unprocessed when the
+    # camera would already have delivered the next one by the time the system is ready for
+    # it, as a camera driver with a one-frame buffer drops the frames a busy reader misses
+    # (counted as "dropped" in stats.json). False: every frame is processed, however late.
+    drop_late_frames: bool = True
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed) and self.speed >= 0):

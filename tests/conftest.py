@@ -8,6 +8,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 TUM_SAMPLE = SHARED_DATA / "tum_fr3_long_office_household_sample"
 EUROC_SAMPLE = SHARED_DATA / "euroc_V1_01_easy_first95"
+KITTI_SAMPLE = SHARED_DATA / "kitti00_first160" / "sequences" / "00"
 
 
 @pytest.fixture
@@ -22,6 +23,14 @@ def euroc_sample() -> Path:
     if not EUROC_SAMPLE.is_dir():
         pytest.skip(f"real EuRoC sample not found at {EUROC_SAMPLE}")
     return EUROC_SAMPLE
+
+
+@pytest.fixture
+def kitti_sample() -> Path:
+    """KITTI odometry 00, frames 0-159 (sequence folder; poses in ../../poses/00.txt)."""
+    if not KITTI_SAMPLE.is_dir():
+        pytest.skip(f"real KITTI sample not found at {KITTI_SAMPLE}")
+    return KITTI_SAMPLE
 
 
 @pytest.fixture(scope="session")

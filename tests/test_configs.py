@@ -92,3 +92,52 @@ def test_invalid_yaml_names_file_and_line(tmp_path):
 def test_missing_config_is_a_config_error(tmp_path):
     with pytest.raises(ConfigError, match=r"nope\.yaml: config file not found"):
         load_camera(tmp_path / "nope.yaml")
+
+
+@pytest.mark.parametrize(
+    "name, features", [("kitti_00-02", 2000), ("kitti_03", 2000), ("kitti_04-12", 2000),
+                       ("tum_fr1", 1000), ("tum_fr2", 1000), ("tum_fr3", 1000), ("euroc_cam0", 1000)],
+)  # fmt: skip
+def test_shipped_configs_carry_orb_slams_settings(name, features):
+    """ORB-SLAM's example settings (ORBextractor.*) for each camera, used as stage settings."""
+    from orbslam_hgcn.pipeline.system import Configs
+
+    c = Configs.from_yaml(CONFIG_DIR / f"{name}.yaml")
+    assert (c.orb.n_features, c.orb.scale_factor, c.orb.n_levels) == (features, 1.2, 8)
+    assert (c.orb.ini_th_fast, c.orb.min_th_fast) == (20.0, 7.0)
+
+
+def test_dataset_settings_follow_the_datasets_camera(kitti_sample, tum_sample, euroc_sample):
+    """A run picks the settings of the shipped config whose camera the dataset has (KITTI's
+    calib.txt included), or of the dataset kind's family; none for an unknown camera."""
+    from orbslam_hgcn.config import dataset_settings
+    from orbslam_hgcn.datasets import open_sequence
+    from orbslam_hgcn.geometry.camera import PinholeCamera
+
+    path, settings = dataset_settings(open_sequence("kitti", kitti_sample).camera, "kitti")
+    assert path.stem == "kitti_00-02" and settings["orb"]["n_features"] == 2000
+    path, _ = dataset_settings(open_sequence("tum", tum_sample).camera, "tum")
+    assert path.stem == "tum_fr3"
+    path, settings = dataset_settings(open_sequence("euroc", euroc_sample).camera, "euroc")
+    assert path.stem == "euroc_cam0" and settings["orb"]["n_features"] == 1000
+    odd = PinholeCamera(fx=700.0, fy=700.0, cx=600.0, cy=180.0, width=1200, height=360)
+    path, settings = dataset_settings(odd, "kitti")  # another KITTI-like camera: the family's settings
+    assert path.stem.startswith("kitti_") and settings["orb"]["n_features"] == 2000
+    assert dataset_settings(odd, "folder") == (None, {})
+
+
+def test_config_overrides_dataset_settings_key_by_key(tmp_path):
+    """--config replaces only the keys it names: the rest of a section keeps the dataset's."""
+    from orbslam_hgcn.pipeline.system import Configs
+
+    user = tmp_path / "user.yaml"
+    user.write_text("orb: {n_levels: 6}\ntracking: {min_inliers: 40}\n")
+    import yaml
+
+    c = Configs.from_layers([(yaml.safe_load((CONFIG_DIR / "kitti_00-02.yaml").read_text()), "kitti"),
+                             (yaml.safe_load(user.read_text()), user)])  # fmt: skip
+    assert (c.orb.n_features, c.orb.n_levels, c.tracking.min_inliers) == (2000, 6, 40)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("orb: {n_featurez: 3}\n")
+    with pytest.raises(ConfigError, match=r"bad\.yaml.*orb\.n_featurez"):
+        Configs.from_layers([({}, "kitti"), (yaml.safe_load(bad.read_text()), bad)])

@@ -17,8 +17,8 @@ from typing import Any
 
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from orbslam_hgcn.config import CONFIG_DIR, load_camera, load_yaml
-from orbslam_hgcn.datasets import open_sequence
+from orbslam_hgcn.config import dataset_settings, load_camera, load_yaml, resolve_config
+from orbslam_hgcn.datasets import detect_kind, open_sequence
 from orbslam_hgcn.errors import OrbslamError, VocabularyError
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.pipeline.system import Configs, System
@@ -126,14 +126,18 @@ def run_dataset(
     """
     rerun_sink = parse_rerun_arg(rerun) if rerun is not None else None
     if config is not None:
-        p = Path(config)
-        if not p.is_file() and not p.suffix and (CONFIG_DIR / f"{p.name}.yaml").is_file():
-            config = CONFIG_DIR / f"{p.name}.yaml"  # a shipped camera name such as tum_fr3
-    configs = Configs.from_yaml(config)
-    if speed is not None:
-        configs = dataclasses.replace(configs, threads=dataclasses.replace(configs.threads, speed=speed))
+        config = resolve_config(config)  # a path, or a shipped camera name such as tum_fr3
+    user_layer = load_yaml(config) if config is not None else {}
+    Configs.from_layers([(user_layer, config or "")])  # a bad --config fails before the dataset is read
     camera = camera_from_config(config)
     sequence = open_sequence(kind, path, camera)
+    settings_path, settings = dataset_settings(sequence.camera, kind or detect_kind(path))
+    if settings_path is not None:
+        log.info("stage settings of %s (the dataset's camera)%s", settings_path.stem,
+                 f", then {config}" if config is not None else "")  # fmt: skip
+    configs = Configs.from_layers([(settings, settings_path or ""), (user_layer, config or "")])
+    if speed is not None:
+        configs = dataclasses.replace(configs, threads=dataclasses.replace(configs.threads, speed=speed))
     if max_frames is not None and max_frames < 1:
         raise OrbslamError(f"--max-frames must be at least 1, found {max_frames}")
     if localization and load_map is None:
@@ -168,6 +172,11 @@ def run_dataset(
         }
     extra = {
         "dataset": {"path": str(path), "kind": kind or "auto", "name": sequence.name, "frames": len(sequence)},
+        "settings": {
+            "dataset": settings_path.stem if settings_path is not None else None,
+            "config": str(config) if config is not None else None,
+            "orb_features": configs.orb.n_features,
+        },
         "vocabulary": repr(vocabulary) if vocabulary is not None else None,
         "interrupted": summary.interrupted,
         "wall_s": summary.wall_s,
@@ -191,9 +200,11 @@ def format_report(report: RunReport) -> list[str]:
     s = report.stats
     f = s["frames"]
     t = s["timing_ms"]
+    share = 100.0 * f["tracked"] / f["frames"] if f["frames"] else 0.0
     lines = [
-        f"frames {f['frames']}: tracked {f['tracked']}, lost {f['lost']}, not initialised "
-        f"{f['not_initialized']}, discarded by map resets {f['reset']} ({s['map_resets']} resets)",
+        f"frames {f['frames']}: tracked {f['tracked']} ({share:.1f}%), lost {f['lost']}, not initialised "
+        f"{f['not_initialized']}, discarded by map resets {f['reset']} ({s['map_resets']} resets), "
+        f"dropped behind the camera {f.get('dropped', 0)}",
         f"keyframes {s['keyframes']}, map points {s['map_points']}, final state: {s['final_state']}",
         "tracking ms/frame: median {median:.1f}, p95 {p95:.1f}, mean {mean:.1f}".format(**t["tracking_per_frame"])
         + " (CPU median {median:.1f})".format(**t["tracking_cpu_per_frame"]),
@@ -209,6 +220,12 @@ def format_report(report: RunReport) -> list[str]:
         lines.append(f"relocalised {reloc['successes']} times ({reloc['attempts']} attempts)")
     if f["lost"]:
         lines.append(f"WARNING: tracking was lost; {f['lost']} frames have no pose in CameraTrajectory.txt")
+    if f["frames"] and f["frames"] - f["tracked"] > 0.1 * f["frames"]:
+        lines.append(f"WARNING: {f['frames'] - f['tracked']} of {f['frames']} frames have no pose: the ATE below "
+                     "covers only the frames tracked")  # fmt: skip
+    if s["map_resets"]:
+        lines.append(f"WARNING: the map was reset {s['map_resets']} time(s); frames before the last reset have "
+                     "no pose")  # fmt: skip
     if f["tracked"] == 0:
         lines.append("WARNING: the map was never initialised (too little parallax or texture); "
                      "the trajectory files are empty")
