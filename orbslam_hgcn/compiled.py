@@ -3,7 +3,9 @@
 Two steps of tracking run on every frame over a few hundred points, where numpy's
 per-call overhead on small arrays outweighs the arithmetic: the pose-only optimisation
 (:mod:`orbslam_hgcn.backend.pose_only`) and the window search of projected points
-(:mod:`orbslam_hgcn.features.projection_search`). They are compiled with numba
+(:mod:`orbslam_hgcn.features.projection_search`). Local mapping's triangulation search
+(:mod:`orbslam_hgcn.features.matching`) is warmed with them; local BA's kernels
+(:mod:`orbslam_hgcn.backend.schur_ba`) are warmed by the solver that runs them. They are compiled with numba
 (:data:`jit`): without the GIL, so other threads run meanwhile, and cached on disk beside
 their modules (or in numba's user cache when the package folder is read-only). ORB
 extraction's FAST detection (:mod:`orbslam_hgcn.features.fast`), quadtree
@@ -37,6 +39,7 @@ def warm_up() -> float:
     from orbslam_hgcn.backend.pose_only import optimize_pose
     from orbslam_hgcn.features.grid import FeatureGrid
     from orbslam_hgcn.features.keypoints import KeypointSet
+    from orbslam_hgcn.features.matching import search_for_triangulation
     from orbslam_hgcn.features.projection_search import fuse_candidates, search_by_projection
     from orbslam_hgcn.geometry.camera import PinholeCamera
 
@@ -56,6 +59,8 @@ def warm_up() -> float:
         kps, grid, camera, np.eye(4), X, kps.desc, X / np.linalg.norm(X, axis=1, keepdims=True),
         np.zeros(n), np.full(n, 10.0),
     )  # fmt: skip
+    pairs = (np.arange(n, dtype=np.int64), np.arange(n, dtype=np.int64))
+    search_for_triangulation(kps, kps, np.eye(3), np.array([500.0, 500.0]), pairs)
     seconds = time.perf_counter() - t0
     if seconds > 2.0:
         log.info("compiled the tracking kernels in %.1f s (cached for later runs)", seconds)

@@ -60,9 +60,16 @@ def sequential_runs(seq):
     return runs
 
 
+def _no_drops(c: Configs | None = None) -> Configs:
+    """Configs whose paced threaded runs process every frame, however late (the default
+    drops frames when the system falls behind its camera, which a loaded test machine may)."""
+    c = c or Configs()
+    return dataclasses.replace(c, threads=dataclasses.replace(c.threads, drop_late_frames=False))
+
+
 @pytest.fixture(scope="module")
 def threaded_run(seq):
-    system = System(seq.camera, sequential=False)
+    system = System(seq.camera, _no_drops(), sequential=False)
     summary = system.run(seq, N_FRAMES, progress=False)
     return system, summary
 
@@ -196,7 +203,7 @@ def test_threaded_run_takes_frames_no_faster_than_their_timestamps(seq, speed):
     # the gap is waited for at most a second, the clock starting again from there.
     t = np.arange(12) * 0.05
     t[-1] = t[-2] + 60.0
-    c = Configs()
+    c = _no_drops()
     c = dataclasses.replace(c, threads=dataclasses.replace(c.threads, speed=speed))
     system = System(seq.camera, c, sequential=False)
     t0 = time.perf_counter()
@@ -208,6 +215,39 @@ def test_threaded_run_takes_frames_no_faster_than_their_timestamps(seq, speed):
     assert started[-1] >= started[-2] + 0.9
     assert wall < 30.0  # not the minute of the gap
     assert system.stats()["threads"]["speed"] == speed
+    _assert_nothing_left()
+
+
+def test_a_paced_run_behind_its_camera_drops_frames_and_counts_them(seq):
+    """A camera at 4 Hz and a tracker that takes 0.65 s more on frames 5 and 12: a frame
+    is dropped unprocessed when the next one has arrived by the time the system is ready
+    for it, as a camera driver with a one-frame buffer drops them, and counted; every
+    other frame is processed, in order."""
+    t = np.arange(20) * 0.25
+    system = System(seq.camera, sequential=False)
+    processed = []
+    track = system.tracker.track
+
+    def slow_track(frame):
+        processed.append(frame.id)
+        if frame.id in (5, 12):
+            time.sleep(0.65)
+        return track(frame)
+
+    system.tracker.track = slow_track
+    summary = system.run(_Retimed(seq, t), progress=False)
+    stats = system.stats()
+    dropped = [r.frame_id for r in system.tracker.records if r.dropped]
+    assert summary.frames == 20 and stats["frames"]["frames"] == 20
+    assert stats["frames"]["dropped"] == len(dropped) >= 2
+    assert sorted(processed + dropped) == list(range(20))  # each frame processed or dropped, once
+    assert processed == sorted(processed)
+    # Only frames delivered while a slow frame was being tracked are dropped.
+    assert 5 in processed and 12 in processed
+    assert set(dropped) <= {6, 7, 13, 14}, dropped
+    no_drop = System(seq.camera, _no_drops(), sequential=False)
+    no_drop.run(_Retimed(seq, t), 20, progress=False)
+    assert no_drop.stats()["frames"]["dropped"] == 0
     _assert_nothing_left()
 
 

@@ -206,6 +206,12 @@ def test_keyframe_rules():
     assert not keyframe_starved(KeyFrameQuery(**busy), cfg)  # only 5 frames since the last
     assert not keyframe_starved(KeyFrameQuery(**{**base, "last_kf_frame_id": 70}), cfg)  # mapping takes it
     assert not keyframe_starved(KeyFrameQuery(**{**busy, "last_kf_frame_id": 70, "n_inliers": 190}), cfg)  # c2
+    # c1c: fewer than keyframe_urgent_inliers (60) tracked points: a keyframe within the
+    # interval, and a starved tracker when mapping is busy.
+    urgent = {**timed, "last_kf_timestamp": 9.8, "n_inliers": 50}
+    assert need_new_keyframe(KeyFrameQuery(**urgent), cfg)
+    assert keyframe_starved(KeyFrameQuery(**{**urgent, "mapping_idle": False}), cfg)
+    assert not keyframe_starved(KeyFrameQuery(**{**urgent, "mapping_idle": False, "n_inliers": 60}), cfg)
 
 
 def test_orthonormalize_and_resolve_points():

@@ -7,8 +7,13 @@ alignment (Umeyama 1991; median, min, max over the runs), loops closed, frames l
 frames per second. Writes ``OUT/compare.md`` (Markdown tables), ``OUT/compare.json`` and
 ``OUT/compare_ate.png`` (a box plot of the ATE). With the stages run in order every run of
 one vocabulary gives the same result (seeded RANSAC); repeated runs differ only when the
-stages run on threads, through timing. A failed run is recorded with its error and the
-comparison goes on.
+stages run on threads, through timing. A run that stopped with an error is recorded with
+it and the comparison goes on.
+
+A run that leaves more than :data:`MAX_UNTRACKED_SHARE` of its frames without a pose, or
+resets its map, counts as failed, as ORB-SLAM's tables mark such runs: its ATE is still
+shown per run, flagged, but it is left out of the vocabulary's ATE median, min and max, so
+no headline figure comes from a sliver of the sequence.
 """
 
 from __future__ import annotations
@@ -29,6 +34,9 @@ log = logging.getLogger(__name__)
 
 RunFn = Callable[..., Any]
 
+# A run that leaves more than this share of its frames without a pose has failed.
+MAX_UNTRACKED_SHARE = 0.10
+
 
 @dataclass
 class RunOutcome:
@@ -46,6 +54,15 @@ class RunOutcome:
     frames_lost: int | None = None
     wall_s: float | None = None
     fps: float | None = None
+    tracked: int | None = None  # frames with a pose in the final map
+    resets: int | None = None  # map resets
+    dropped: int | None = None  # frames dropped unprocessed (behind the camera)
+    failed: str | None = None  # why the run counts as failed (too few frames tracked, a reset)
+
+    @property
+    def counts(self) -> bool:
+        """Whether the run's ATE counts in the summary (it ran and did not fail)."""
+        return self.ok and self.failed is None
 
 
 @dataclass
@@ -64,15 +81,24 @@ class Comparison:
 def outcome_from_stats(vocab: str, run: int, out: Path, stats: dict[str, Any]) -> RunOutcome:
     """The figures of one finished run from its stats dict (as written to stats.json)."""
     ate = stats.get("ate_sim3", {}).get("keyframes", {})
-    frames = int(stats["frames"]["frames"])
+    f = stats["frames"]
+    frames = int(f["frames"])
     wall = float(stats["wall_s"])
+    tracked, resets = int(f["tracked"]), int(stats.get("map_resets", 0))
+    reasons = []
+    if frames - tracked > MAX_UNTRACKED_SHARE * frames:
+        reasons.append(f"{frames - tracked} of {frames} frames without a pose")
+    if resets:
+        reasons.append(f"{resets} map reset(s)")
     return RunOutcome(
         vocab=vocab, run=run, out=str(out), ok=True,
         ate_rmse_m=float(ate["rmse_m"]) if "rmse_m" in ate else None,
         ate_error=None if "rmse_m" in ate else ate.get("error", "no ground truth"),
         loops_closed=len(stats.get("loop_closing", {}).get("loops", [])),
-        frames=frames, frames_lost=int(stats["frames"]["lost"]), wall_s=wall,
+        frames=frames, frames_lost=int(f["lost"]), wall_s=wall,
         fps=frames / wall if wall > 0 else None,
+        tracked=tracked, resets=resets, dropped=int(f.get("dropped", 0)),
+        failed="; ".join(reasons) or None,
     )  # fmt: skip
 
 
@@ -84,16 +110,19 @@ def _spread(values: list[float]) -> dict[str, Any]:
 
 
 def summarise(runs: list[RunOutcome], vocabs: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """Per vocabulary: runs, failures, and median/min/max of ATE, loops, frames lost, fps."""
+    """Per vocabulary: runs, runs that count (ran and did not fail), failures, and
+    median/min/max of ATE (over the runs that count), loops, frames lost, fps."""
     out: dict[str, dict[str, Any]] = {}
     for v in vocabs:
         mine = [r for r in runs if r.vocab == v]
         ok = [r for r in mine if r.ok]
+        good = [r for r in ok if r.counts]
         out[v] = {
             "runs": len(mine),
-            "ok": len(ok),
-            "failures": [{"run": r.run, "error": r.error} for r in mine if not r.ok],
-            "ate_rmse_m": _spread([r.ate_rmse_m for r in ok if r.ate_rmse_m is not None]),
+            "ok": len(good),
+            "failures": [{"run": r.run, "error": r.error or r.failed} for r in mine if not r.counts],
+            "ate_rmse_m": _spread([r.ate_rmse_m for r in good if r.ate_rmse_m is not None]),
+            "tracked_share": _spread([r.tracked / r.frames for r in ok if r.tracked is not None and r.frames]),
             "loops_closed": _spread([r.loops_closed for r in ok]),
             "frames_lost": _spread([r.frames_lost for r in ok]),
             "fps": _spread([r.fps for r in ok if r.fps is not None]),
@@ -115,8 +144,15 @@ def describe_run(r: RunOutcome) -> str:
     if not r.ok:
         return f"{head}: FAILED: {r.error}"
     ate = f"ATE {_mm(r.ate_rmse_m)} mm (keyframes, Sim(3))" if r.ate_rmse_m is not None else f"no ATE ({r.ate_error})"
-    return (f"{head}: {ate}, {r.loops_closed} loop(s) closed, {r.frames_lost} of {r.frames} frames lost, "
-            f"{_num(r.fps, '{:.1f}')} fps")
+    line = (f"{head}: {ate}, {r.loops_closed} loop(s) closed, {_tracked(r)} of frames tracked, "
+            f"{r.frames_lost} of {r.frames} frames lost, {_num(r.fps, '{:.1f}')} fps")
+    if r.failed:
+        line += f"; FAILED ({r.failed}): its ATE does not count"
+    return line
+
+
+def _tracked(r: RunOutcome) -> str:
+    return "n/a" if r.tracked is None or not r.frames else f"{100.0 * r.tracked / r.frames:.1f}%"
 
 
 def _stages_text(threads: dict[str, Any] | None) -> str:
@@ -153,15 +189,26 @@ def format_markdown(c: Comparison) -> str:
             f"{_num(s['loops_closed']['median'])} | {_num(s['frames_lost']['median'])} | "
             f"{_num(s['fps']['median'], '{:.2f}')} |"
         )
-    lines += ["", "| vocabulary | run | ATE (mm) | loops closed | frames | frames lost | fps | status |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        f"Runs ok: runs that neither stopped with an error nor failed. A run fails (X) when more than "
+        f"{100 * MAX_UNTRACKED_SHARE:.0f}% of its frames have no pose or its map was reset; its ATE is shown but "
+        "left out of the figures above.",
+        "",
+        "| vocabulary | run | ATE (mm) | loops closed | frames | frames lost | fps | status | tracked | resets |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in c.runs:
         status = "ok" if r.ok else f"failed: {r.error}"
-        if r.ok and r.ate_rmse_m is None:
+        if r.ok and r.failed:
+            status = f"X failed: {r.failed}"
+        elif r.ok and r.ate_rmse_m is None:
             status = f"ok (no ATE: {r.ate_error})"
+        ate = _mm(r.ate_rmse_m) + (" (X)" if r.ok and r.failed and r.ate_rmse_m is not None else "")
         lines.append(
-            f"| {r.vocab} | {r.run} | {_mm(r.ate_rmse_m)} | {_num(r.loops_closed)} | {_num(r.frames)} | "
-            f"{_num(r.frames_lost)} | {_num(r.fps, '{:.2f}')} | {status.replace('|', '/')} |"
+            f"| {r.vocab} | {r.run} | {ate} | {_num(r.loops_closed)} | {_num(r.frames)} | "
+            f"{_num(r.frames_lost)} | {_num(r.fps, '{:.2f}')} | {status.replace('|', '/')} | {_tracked(r)} | "
+            f"{_num(r.resets)} |"
         )
     return "\n".join(lines) + "\n"
 

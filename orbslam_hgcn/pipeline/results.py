@@ -53,16 +53,20 @@ def camera_trajectory(records: Iterable[PoseRecord], m: Map, generation: int) ->
     return Trajectory(np.asarray(stamps)[order], np.stack(poses)[order])
 
 
-def frame_counts(records: list[PoseRecord], generation: int) -> dict[str, int]:
+def frame_counts(records: list[PoseRecord], generation: int) -> dict[str, Any]:
     """Frames by outcome: tracked (with a pose in the current map), lost, not initialised,
-    discarded by a map reset."""
-    tracked = sum(r.generation == generation and r.T_cr is not None for r in records)
-    lost = sum(r.generation == generation and r.state == TrackingState.LOST for r in records)
-    not_init = sum(
-        r.generation == generation and r.T_cr is None and r.state == TrackingState.NOT_INITIALIZED for r in records
-    )
-    reset = sum(r.generation != generation for r in records)
-    return {"frames": len(records), "tracked": tracked, "lost": lost, "not_initialized": not_init, "reset": reset}
+    discarded by a map reset, dropped unprocessed (a paced run behind its camera); and the
+    share of all frames tracked."""
+    cur = [r for r in records if r.generation == generation and not r.dropped]
+    tracked = sum(r.T_cr is not None for r in cur)
+    lost = sum(r.state == TrackingState.LOST for r in cur)
+    not_init = sum(r.T_cr is None and r.state == TrackingState.NOT_INITIALIZED for r in cur)
+    reset = sum(r.generation != generation and not r.dropped for r in records)
+    dropped = sum(r.dropped for r in records)
+    return {
+        "frames": len(records), "tracked": tracked, "lost": lost, "not_initialized": not_init, "reset": reset,
+        "dropped": dropped, "tracked_share": tracked / len(records) if records else 0.0,
+    }  # fmt: skip
 
 
 def summary_ms(values: list[float] | np.ndarray) -> dict[str, float]:

@@ -180,6 +180,13 @@ class ThreadedStages:
                 self.loop_closer.solver = self._solver("global-ba")  # its process starts with the first loop
             self._loop = Worker("loop", self.loop_closer.process, nice=self._worker_nice).start()
 
+    def wait_ready(self) -> None:
+        """Return once the local BA process has started, imported its libraries and loaded
+        its compiled kernels (1-2 s), so that the first keyframes are not mapped late."""
+        solver = self.mapper.solver.solver
+        if isinstance(solver, ProcessSolver):
+            solver.ping()
+
     # --- the tracker's side --------------------------------------------------------------
     @property
     def optimising(self) -> bool:

@@ -102,12 +102,22 @@ class Configs:
         """Defaults, overridden by the sections present in the YAML file ``path``."""
         if path is None:
             return cls()
-        data = load_yaml(path)
+        return cls.from_layers([(load_yaml(path), path)])
+
+    @classmethod
+    def from_layers(cls, layers: list[tuple[dict[str, Any], str | Path]]) -> Configs:
+        """Defaults, overridden key by key by each layer in turn: (the mapping of a config
+        file, its path for error messages). Each layer is validated on its own, so an error
+        names the file that holds the bad key."""
         defaults = cls()
-        kw = {
-            f.name: section_from_yaml(type(getattr(defaults, f.name)), data, path, f.name)
-            for f in dataclasses.fields(cls)
-        }
+        kw = {}
+        for f in dataclasses.fields(cls):
+            section_type = type(getattr(defaults, f.name))
+            merged: dict[str, Any] = {}
+            for data, path in layers:
+                section_from_yaml(section_type, data, path, f.name)  # validates this layer
+                merged.update((data or {}).get(f.name) or {})
+            kw[f.name] = section_from_yaml(section_type, {f.name: merged}, "<merged settings>", f.name)
         return cls(**kw)
 
 
@@ -150,6 +160,13 @@ class _Pacer:
         if wait > 0:
             self.halt.wait(wait)
 
+    def delivered(self, timestamp: float) -> bool:
+        """Whether a camera would already have delivered the frame of ``timestamp`` (False
+        when not pacing, or before the first frame)."""
+        if self.speed <= 0 or self._anchor is None or not np.isfinite(timestamp):
+            return False
+        return self._anchor[0] + (timestamp - self._anchor[1]) / self.speed <= time.perf_counter()
+
 
 class _Prefetch:
     """Reads frames ahead of tracking and extracts the features of frame i + 1 while frame
@@ -161,10 +178,18 @@ class _Prefetch:
     extraction process when it has one. The extractor is chosen from the tracker's state
     when the job starts; if the state has changed when the frame is processed,
     :meth:`System.process` extracts again.
+
+    With ``drop_late``, a paced run behind its camera drops frames as a camera driver with
+    a one-frame buffer does: a frame is dropped, unprocessed, when the camera would already
+    have delivered the next one by the time the system is ready for it.
     """
 
-    def __init__(self, system: System, sequence: Sequence, n: int, pacer: _Pacer, ahead: int = 4) -> None:
+    def __init__(
+        self, system: System, sequence: Sequence, n: int, pacer: _Pacer, ahead: int = 4, drop_late: bool = False
+    ) -> None:
         self.system, self.sequence, self.n, self.pacer = system, sequence, n, pacer
+        self.drop_late = drop_late
+        self._timestamps = np.asarray(sequence.timestamps, dtype=np.float64)
         self._records: queue.Queue = queue.Queue(maxsize=ahead)
         self._stop = threading.Event()
         self._reader = threading.Thread(target=self._read, name="orbslam-reader", daemon=True)
@@ -197,14 +222,21 @@ class _Prefetch:
         kps = self.system._extract(rec.image, extractor, remote=True)
         return rec, Features(extractor, kps, t0, 1000.0 * (time.perf_counter() - t0))
 
-    def take(self, i: int) -> tuple[FrameRecord, Features]:
-        """Frame ``i`` and its features; starts on frame ``i + 1``. Frames are taken in order."""
+    def take(self, i: int) -> tuple[int, FrameRecord, Features, list[FrameRecord]]:
+        """The next frame to process, from position ``i`` on: its position, record and
+        features, and the frames dropped before it (see the class text); starts on the
+        frame after it."""
         if self._next is not None and self._next[0] == i:
-            out = self._next[1].result()
+            rec, features = self._next[1].result()
         else:
-            out = self._job(i)
+            rec, features = self._job(i)
+        dropped: list[FrameRecord] = []
+        while self.drop_late and i + 1 < self.n and self.pacer.delivered(self._timestamps[i + 1]):
+            dropped.append(rec)
+            i += 1
+            rec, features = self._job(i)
         self._next = (i + 1, self._pool.submit(self._job, i + 1)) if i + 1 < self.n else None
-        return out
+        return i, rec, features, dropped
 
     def close(self) -> None:
         self.pacer.halt.set()  # a job waiting for its frame's time goes on at once
@@ -458,6 +490,7 @@ class System:
         # runs give the same result at any pace.
         pacer = _Pacer(0.0 if self.sequential else threads.speed, threading.Event())
         prefetch = None
+        stages = self.stages  # threaded: worker threads and the local BA process start now
         if not self.sequential and threads.prefetch:
             if threads.extraction_process and self._extraction is None:
                 self._extraction = ExtractionProcess(
@@ -472,14 +505,23 @@ class System:
                 warm.start()
                 self._extraction.start()  # before the reader takes the first frame
                 warm.join()
-            prefetch = _Prefetch(self, sequence, n, pacer)
+            prefetch = _Prefetch(self, sequence, n, pacer, drop_late=threads.drop_late_frames)
+        if isinstance(stages, ThreadedStages):
+            stages.wait_ready()
         try:
-            for i in range(n):
+            i = 0
+            while i < n:
+                dropped: list[FrameRecord] = []
                 if prefetch is not None:
-                    rec, features = prefetch.take(i)
+                    i, rec, features, dropped = prefetch.take(i)
                 else:
                     rec, features = sequence[i], None
                     pacer.wait(rec.timestamp)
+                i += 1
+                for d in dropped:
+                    self.tracker.drop(d.index, d.timestamp)
+                    done += 1
+                    bar.update(1)
                 t_frame = time.perf_counter()
                 result = self.process(rec.image, rec.timestamp, rec.index, features)
                 if self.observers:

@@ -71,7 +71,8 @@ class PoseRecord:
 
     ref_kf_id: reference keyframe (-1: none); T_cr: (4, 4) pose relative to it
     (T_cw = T_cr @ T_rw), None when the frame has no pose; state: after tracking;
-    generation: the map it refers to (a reset starts a new generation).
+    generation: the map it refers to (a reset starts a new generation); dropped: the
+    frame was not processed because the system was behind its camera.
     """
 
     frame_id: int
@@ -80,6 +81,7 @@ class PoseRecord:
     T_cr: np.ndarray | None
     state: TrackingState
     generation: int
+    dropped: bool = False  # never processed: the system was behind its camera
 
 
 @dataclass
@@ -177,6 +179,12 @@ class Tracker:
         self._next_frame_id = frame_id + 1
         self._record(frame_id, timestamp, None)
         return TrackResult(None, self.state)
+
+    def drop(self, frame_id: int, timestamp: float) -> None:
+        """Record a frame the system dropped unprocessed, as a camera driver drops the frames
+        a busy reader misses; the tracking state is unchanged."""
+        self._next_frame_id = frame_id + 1
+        self.records.append(PoseRecord(frame_id, timestamp, -1, None, self.state, self.generation, dropped=True))
 
     def track(self, frame: Frame) -> TrackResult:
         """Track one frame (features extracted); returns what happened."""
