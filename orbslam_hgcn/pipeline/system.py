@@ -179,16 +179,17 @@ class _Prefetch:
     when the job starts; if the state has changed when the frame is processed,
     :meth:`System.process` extracts again.
 
-    With ``drop_late``, a paced run behind its camera drops frames as a camera driver with
-    a one-frame buffer does: a frame is dropped, unprocessed, when the camera would already
-    have delivered the next one by the time the system is ready for it.
+    With ``buffer`` > 0, a paced run behind its camera drops frames as a camera driver
+    with a queue of ``buffer`` frames does: a frame is dropped, unprocessed, when the camera
+    would already have delivered ``buffer`` newer ones by the time the system is ready for
+    it. 0: no frame is dropped.
     """
 
     def __init__(
-        self, system: System, sequence: Sequence, n: int, pacer: _Pacer, ahead: int = 4, drop_late: bool = False
+        self, system: System, sequence: Sequence, n: int, pacer: _Pacer, ahead: int = 4, buffer: int = 0
     ) -> None:
         self.system, self.sequence, self.n, self.pacer = system, sequence, n, pacer
-        self.drop_late = drop_late
+        self.buffer = buffer
         self._timestamps = np.asarray(sequence.timestamps, dtype=np.float64)
         self._records: queue.Queue = queue.Queue(maxsize=ahead)
         self._stop = threading.Event()
@@ -231,7 +232,7 @@ class _Prefetch:
         else:
             rec, features = self._job(i)
         dropped: list[FrameRecord] = []
-        while self.drop_late and i + 1 < self.n and self.pacer.delivered(self._timestamps[i + 1]):
+        while self.buffer > 0 and i + self.buffer < self.n and self.pacer.delivered(self._timestamps[i + self.buffer]):
             dropped.append(rec)
             i += 1
             rec, features = self._job(i)
@@ -505,7 +506,7 @@ class System:
                 warm.start()
                 self._extraction.start()  # before the reader takes the first frame
                 warm.join()
-            prefetch = _Prefetch(self, sequence, n, pacer, drop_late=threads.drop_late_frames)
+            prefetch = _Prefetch(self, sequence, n, pacer, buffer=threads.frame_buffer)
         if isinstance(stages, ThreadedStages):
             stages.wait_ready()
         try:

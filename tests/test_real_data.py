@@ -1,0 +1,125 @@
+"""Real images (../shared/data): initialisation on forward driving (KITTI) and on a
+hand-held camera (TUM), short real KITTI runs against the ground truth, and the
+distorted EuRoC camera end to end.
+
+KITTI odometry: Geiger, Lenz and Urtasun, CVPR 2012 (CC BY-NC-SA 3.0); TUM RGB-D: Sturm et
+al., IROS 2012 (CC BY 4.0); EuRoC MAV: Burri et al., IJRR 2016 (ASL, ETH Zurich).
+"""
+
+import numpy as np
+import pytest
+
+from orbslam_hgcn.config import ORBConfig, dataset_settings
+from orbslam_hgcn.datasets import open_sequence
+from orbslam_hgcn.datasets.base import Sequence
+from orbslam_hgcn.features.grid import FeatureGrid
+from orbslam_hgcn.features.orb import ORBExtractor
+from orbslam_hgcn.geometry.se3 import angle_between_deg, inv_T, rotation_angle_deg
+from orbslam_hgcn.map import Frame, Map, check_invariants
+from orbslam_hgcn.pipeline.run import run_dataset, trajectory_ate
+from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.tracking.initializer import MonocularInitializer
+
+
+class _Slice(Sequence):
+    """Frames ``lo`` to ``hi - 1`` of ``base``."""
+
+    def __init__(self, base: Sequence, lo: int, hi: int) -> None:
+        self.base, self.lo, self.hi = base, lo, hi
+        self.name, self.camera, self.ground_truth, self.color = base.name, base.camera, base.ground_truth, False
+
+    def __len__(self) -> int:
+        return self.hi - self.lo
+
+    def __getitem__(self, i: int):
+        return self.base[self.lo + i]
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self.base.timestamps[self.lo : self.hi]
+
+
+def _initialise(seq: Sequence, start: int, n_features: int, max_frames: int = 30, gt_tol: float = 0.01):
+    """Feed frames from ``start`` to a fresh initialiser until it makes a map; returns the
+    initial map and the estimated and ground-truth motions between its two keyframes."""
+    ext = ORBExtractor(ORBConfig(n_features=n_features))
+    init, m = MonocularInitializer(), Map()
+    for i in range(start, min(start + max_frames, len(seq))):
+        rec = seq[i]
+        f = Frame(i, rec.timestamp, seq.camera, ext.extract(rec.image, seq.camera))
+        res = init.add_frame(f, FeatureGrid(f.keypoints, seq.camera), m)
+        if res is not None:
+            gt = seq.ground_truth
+            a, b = gt.nearest(res.kf_first.timestamp, gt_tol), gt.nearest(res.kf_second.timestamp, gt_tol)
+            T21 = res.kf_second.T_cw @ res.kf_first.T_wc
+            G21 = inv_T(gt.poses[b]) @ gt.poses[a]
+            return res, m, T21, G21
+    pytest.fail(f"no initialisation within {max_frames} frames from frame {start}")
+
+
+@pytest.mark.parametrize("start", [40, 80])
+def test_initialisation_on_real_forward_driving(kitti_sample, start):
+    """KITTI's settings (2000 features, twice that while initialising): a map within 5
+    frames, motion within 1 deg of rotation and 3 deg of translation direction.
+
+    ORB-SLAM's own search (reference level-0 keypoints in a 100 px window) never reached
+    1 deg of parallax on these frames. Frames 40 and 80 are used because at frames 0-2
+    both this initialiser and OpenCV's five-point solver put the direction 2.5-3.3 deg
+    from the ground truth's."""
+    seq = open_sequence("kitti", kitti_sample)
+    res, m, T21, G21 = _initialise(seq, start, 4000)
+    assert res.kf_second.frame_id - start <= 5
+    assert rotation_angle_deg(T21[:3, :3] @ G21[:3, :3].T) < 1.0
+    assert angle_between_deg(T21[:3, 3], G21[:3, 3]) < 3.0
+    assert len(res.point_ids) >= 100 and check_invariants(m) == []
+
+
+def test_initialisation_on_real_hand_held_frames(tum_sample):
+    """The TUM sample: 16 frames over 2 cm, then one 3.4 s later. The followed keypoints
+    reach the far frame and the map is made from it, the motion within 2 deg of rotation
+    and 3 deg of direction (the ground truth starts 67 ms after frame 0, when the camera
+    has moved about 3 mm of the 71 cm)."""
+    seq = open_sequence("tum", tum_sample)
+    res, m, T21, G21 = _initialise(seq, 0, 2000, gt_tol=0.1)
+    assert res.kf_second.frame_id == 16
+    assert rotation_angle_deg(T21[:3, :3] @ G21[:3, :3].T) < 2.0
+    assert angle_between_deg(T21[:3, 3], G21[:3, 3]) < 3.0
+
+
+def test_short_real_kitti_run_as_a_user_runs_it(kitti_sample, tmp_path):
+    """The first 60 KITTI frames (52 m) through ``run`` without --config: KITTI's settings
+    are picked from calib.txt, the map is made on frame 1 or 2, every frame is tracked and
+    keyframes come at most every 0.3 s of camera time once the map has 5 (22-23 made here,
+    where the old rule made one per frame). The keyframe ATE was 21-23 cm here, most of it
+    from the first 10 frames (frames 40-99 alone: 5 cm, next test)."""
+    r = run_dataset(kitti_sample, tmp_path / "run", kind="kitti", max_frames=60, sequential=True, progress=False)
+    s = r.stats
+    assert s["settings"]["dataset"] == "kitti_00-02" and s["settings"]["orb_features"] == 2000
+    init = [e["frame"] for e in s["events"] if e["event"] == "initialized"]
+    assert init and init[0] <= 2
+    assert s["frames"]["tracked"] == 60 and s["map_resets"] == 0
+    assert 12 <= s["keyframes"] <= 30
+    assert r.ate["keyframes"]["rmse_m"] < 0.35 and r.ate["camera"]["rmse_m"] < 0.35
+
+
+def test_real_kitti_frames_40_to_99_against_ground_truth(kitti_sample):
+    """60 frames of straight driving from frame 40, sequential: keyframe ATE 5.0 cm here."""
+    seq = open_sequence("kitti", kitti_sample)
+    path, settings = dataset_settings(seq.camera, "kitti")
+    system = System(seq.camera, Configs.from_layers([(settings, path)]), sequential=True)
+    system.run(_Slice(seq, 40, 100), progress=False)
+    stats = system.stats()
+    assert stats["frames"]["tracked"] >= 58 and stats["map_resets"] == 0
+    ate = trajectory_ate(seq.ground_truth, system.keyframe_trajectory())
+    assert ate["pairs"] >= 12 and ate["rmse_m"] < 0.08, ate
+    assert check_invariants(system.map) == []
+
+
+def test_euroc_sample_runs_end_to_end_with_its_distortion(euroc_sample, tmp_path):
+    """95 real frames with radial-tangential distortion, threaded as a user runs them: the
+    settings of the EuRoC camera, no error, every frame accounted for. The vehicle hardly
+    moves (1.5 cm), so no map is expected."""
+    r = run_dataset(euroc_sample, tmp_path / "run", progress=False)
+    f = r.stats["frames"]
+    assert r.stats["settings"]["dataset"] == "euroc_cam0"
+    assert f["frames"] == 95 == f["tracked"] + f["lost"] + f["not_initialized"] + f["reset"] + f["dropped"]
