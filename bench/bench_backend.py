@@ -1,11 +1,15 @@
-"""Timings of the optimisation back end on synthetic problems.
+"""Timings of the optimisation back end on synthetic problems and on real KITTI windows.
 
-    OMP_NUM_THREADS=1 python bench/bench_backend.py [--quick]
+    OMP_NUM_THREADS=1 python bench/bench_backend.py [--quick] [--no-kitti]
 
 Prints: pose-only optimisation (300 points, 20% gross outliers; compiled and gtsam), local BA
-of a typical window (15 keyframes, ~2000 points, ~10000 observations) with the longest pause
-it causes in another Python thread (gtsam keeps the GIL while iterating), the Map <-> array
-conversion of that window, and Sim(3) essential-graph optimisation of 200 keyframes.
+of a typical window (15 keyframes, ~2000 points, ~10000 observations) with each solver
+(``backend.local_ba_solver``: the compiled Schur-complement LM and gtsam) and the longest
+pause it causes in another Python thread (gtsam keeps the GIL while iterating; the compiled
+solver releases it), the Map <-> array conversion of that window, local BA of real windows
+cut from a sequential run over KITTI 00 (Geiger et al., CVPR 2012; ../shared/data) with
+both solvers and how far apart their results are, the local mapping profile of that run,
+and Sim(3) essential-graph optimisation of 200 keyframes.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from orbslam_hgcn.backend.bundle_adjustment import local_bundle_adjustment
 from orbslam_hgcn.backend.pose_graph import optimize_essential_graph, relative_sim3
 from orbslam_hgcn.backend.pose_only import optimize_pose, optimize_pose_gtsam
 from orbslam_hgcn.backend.synthetic import SCALE_FACTOR, N_LEVELS, drifted_loop, make_scene, perturb_pose
+from orbslam_hgcn.config import BackendConfig
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.map import Frame, Map
@@ -114,19 +119,22 @@ def bench_local_ba(runs: int) -> None:
     P0 = sc.points + rng.normal(size=sc.points.shape) * 0.05
     args = (sc.obs_kf, sc.obs_pt, sc.uv, sc.inv_sigma2, sc.K)
     print(f"(load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs while measuring)")
-    ticker = _Ticker()
-    ticker.start()
-    ts = []
-    for _ in range(runs):
-        t = time.perf_counter()
-        local_bundle_adjustment(T0, fixed, P0, *args)
-        ts.append(time.perf_counter() - t)
-    ticker.stop.set()
-    ticker.join()
-    print(f"local BA ({len(sc.T_cw)} keyframes, {fixed.sum()} fixed, {len(sc.points)} points, "
-          f"{len(sc.obs_kf)} observations, 5 + 10 iterations): median {1e3 * np.median(ts):.0f} ms, "
-          f"min {1e3 * np.min(ts):.0f} ms over {runs} runs; "
-          f"longest pause of another Python thread {1e3 * ticker.max_gap:.0f} ms")  # fmt: skip
+    for solver in ("schur", "gtsam"):
+        cfg = BackendConfig(local_ba_solver=solver)
+        local_bundle_adjustment(T0, fixed, P0, *args, cfg)  # compile or load the kernels
+        ticker = _Ticker()
+        ticker.start()
+        ts = []
+        for _ in range(runs):
+            t = time.perf_counter()
+            local_bundle_adjustment(T0, fixed, P0, *args, cfg)
+            ts.append(time.perf_counter() - t)
+        ticker.stop.set()
+        ticker.join()
+        print(f"local BA, {solver} ({len(sc.T_cw)} keyframes, {fixed.sum()} fixed, {len(sc.points)} points, "
+              f"{len(sc.obs_kf)} observations, 5 + 10 iterations): median {1e3 * np.median(ts):.0f} ms, "
+              f"min {1e3 * np.min(ts):.0f} ms over {runs} runs; "
+              f"longest pause of another Python thread {1e3 * ticker.max_gap:.0f} ms")  # fmt: skip
 
     m = _scene_map(sc)
     newest = int(m.keyframe_ids()[-1])
@@ -140,6 +148,45 @@ def bench_local_ba(runs: int) -> None:
     print(f"map window of keyframe {newest} ({len(w.kf_ids)} keyframes, {w.fixed.sum()} fixed, "
           f"{len(w.point_ids)} points, {w.n_observations} observations): cut {1e3 * t_cut:.0f} ms, "
           f"write back {1e3 * t_apply:.0f} ms")  # fmt: skip
+
+
+def bench_kitti_windows(runs: int, frames: int = 120) -> None:
+    """Local BA with both solvers on windows cut from a sequential run over real KITTI frames
+    (KITTI's settings, 2000 ORB features), and that run's local mapping profile."""
+    from pathlib import Path
+
+    from orbslam_hgcn.config import dataset_settings
+    from orbslam_hgcn.datasets import open_sequence
+    from orbslam_hgcn.pipeline.system import Configs, System
+
+    path = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti00_first160" / "sequences" / "00"
+    if not path.is_dir():
+        print(f"KITTI windows: skipped, {path} not found")
+        return
+    seq = open_sequence("kitti", path)
+    sp, settings = dataset_settings(seq.camera, "kitti")
+    system = System(seq.camera, Configs.from_layers([(settings, sp)]), sequential=True)
+    system.run(seq, frames, progress=False)
+    t = system.mapper.timings
+    steps = ", ".join(f"{k} {np.median(v):.1f}" for k, v in t.items() if k not in ("total_cpu", "local_ba_cpu"))
+    print(f"KITTI 00 frames 0-{frames - 1}, sequential: {system.map.n_keyframes()} keyframes; local mapping per "
+          f"keyframe, median ms: {steps}")  # fmt: skip
+    m = system.map
+    for kf in [int(k) for k in m.keyframe_ids()][-12::4]:
+        w = local_window(m, kf)
+        prob = (w.T_cw, w.fixed, w.points, w.obs_kf, w.obs_pt, w.uv, w.inv_sigma2, w.K)
+        out, times = {}, {}
+        for solver in ("schur", "gtsam"):
+            cfg = BackendConfig(local_ba_solver=solver)
+            out[solver] = local_bundle_adjustment(*prob, cfg)
+            times[solver] = _median_ms(lambda cfg=cfg: local_bundle_adjustment(*prob, cfg), runs)[0]
+        centres = [(-np.einsum("kji,kj->ki", r.T_cw[:, :3, :3], r.T_cw[:, :3, 3])) for r in out.values()]
+        depth = float(np.median(np.linalg.norm(w.points - centres[0][:1], axis=1)))
+        print(f"  KITTI window of keyframe {kf} ({len(w.kf_ids)} keyframes, {(~w.fixed).sum()} free, "
+              f"{len(w.point_ids)} points, {w.n_observations} observations): schur {times['schur']:.0f} ms, "
+              f"gtsam {times['gtsam']:.0f} ms (median of {runs}); keyframe centres apart by at most "
+              f"{np.abs(centres[0] - centres[1]).max() / depth:.1e} of the median point distance, outliers "
+              f"{int(out['schur'].outlier.sum())} / {int(out['gtsam'].outlier.sum())}")  # fmt: skip
 
 
 def bench_pose_graph(runs: int) -> None:
@@ -158,10 +205,13 @@ def bench_pose_graph(runs: int) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer repetitions")
+    ap.add_argument("--no-kitti", action="store_true", help="skip the real KITTI windows")
     args = ap.parse_args()
     q = args.quick
     bench_pose_only(100 if q else 500)
     bench_local_ba(2 if q else 5)
+    if not args.no_kitti:
+        bench_kitti_windows(2 if q else 5)
     bench_pose_graph(3 if q else 10)
 
 
