@@ -28,7 +28,7 @@ another job on a user's machine would.
 Usage::
 
     python bench/bench_real.py [--sequences kitti00 tum_sample euroc_sample street fr3_hard]
-                               [--modes threaded sequential] [--runs 3] [--hog N]
+                               [--modes threaded sequential] [--runs 3] [--seq-runs 1] [--hog N]
                                [--args "--vocab orb"] [--cache DIR] [--json FILE]
 """
 
@@ -168,7 +168,9 @@ def main() -> int:
     ap.add_argument("--sequences", nargs="+", default=["kitti00", "tum_sample", "euroc_sample", "street", "fr3_hard"],
                     choices=[*REAL, *RENDERS])  # fmt: skip
     ap.add_argument("--modes", nargs="+", default=["threaded", "sequential"], choices=["threaded", "sequential"])
-    ap.add_argument("--runs", type=int, default=3, help="runs per sequence and mode (default 3)")
+    ap.add_argument("--runs", type=int, default=3, help="threaded runs per sequence (default 3)")
+    ap.add_argument("--seq-runs", type=int, default=1,
+                    help="sequential runs per sequence (default 1: they give the same result every time)")
     ap.add_argument("--hog", type=int, default=0, help="busy processes beside every run (default 0)")
     ap.add_argument("--args", default="", help="extra arguments for orbslam-hgcn run, e.g. \"--vocab orb\"")
     ap.add_argument("--cache", default=os.path.expanduser("~/.cache/orbslam_hgcn"))
@@ -187,7 +189,7 @@ def main() -> int:
             print(ROW.format("run", "init", "track%", "resets", "dropped", "kfs", "kfATE cm", "camATE cm", "LM ms",
                              "BA ms", "fps"))  # fmt: skip
             rows = []
-            for k in range(a.runs):
+            for k in range(a.runs if mode == "threaded" else a.seq_runs):
                 r = run_once(path, kind, mode, extra, a.hog)
                 if "error" in r:
                     print(f"{k + 1:>4} failed: {r['error']}")
@@ -197,6 +199,12 @@ def main() -> int:
             if rows:
                 med = _median(rows)
                 print(_row("med", med))
+                if len(rows) > 1:
+                    ates = [r["kf_ate_cm"] for r in rows if np.isfinite(r["kf_ate_cm"])]
+                    shares = [100 * r["tracked_share"] for r in rows]
+                    span = f"{min(ates):.2f}-{max(ates):.2f} cm" if ates else "n/a"
+                    print(f"spread over {len(rows)} runs: keyframe ATE {span}, tracked {min(shares):.1f}-"
+                          f"{max(shares):.1f}%, resets {sum(r['resets'] for r in rows)} in all")  # fmt: skip
                 steps = {s: float(np.median([r["steps_ms"].get(s, np.nan) for r in rows])) for s in rows[0]["steps_ms"]}
                 print("local mapping steps, median ms: " + ", ".join(f"{s} {v:.0f}" for s, v in steps.items())
                       + f"; ORB features {rows[0]['features']}")  # fmt: skip

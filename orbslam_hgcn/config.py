@@ -719,18 +719,23 @@ class ThreadsConfig:
     # the camera would otherwise outrun it until tracking is lost.
     keyframe_wait_s: float = 0.5
     # Paced threaded runs (speed > 0) with prefetch: a frame is dropped unprocessed when the
-    # camera would already have delivered this many newer ones by the time the system is
-    # ready for it, as a camera driver with a queue of that many frames drops the frames a
-    # busy reader misses (counted as "dropped" in stats.json); the system never falls
-    # further behind than that. 0: every frame is processed, however late. With 1 (ORB-SLAM's
-    # ROS node subscribes with a queue of 1), the fr3 replay with blur (30 Hz) dropped 2.6%
-    # of its frames on an idle 2-core machine, on short stalls of a frame or two.
-    frame_buffer: int = 2
+    # camera would already have delivered the frames of the next frame_buffer_s seconds by
+    # the time the system is ready for it, as a camera driver whose queue holds that much
+    # drops the frames a busy reader misses (counted as "dropped" in stats.json): the system
+    # never falls further behind than that, and catches up after a stall without skipping
+    # the frames in between. 0: every frame is processed, however late. With a queue of one
+    # frame (ORB-SLAM's ROS node subscribes with a queue of 1), the fr3 replay with blur
+    # (30 Hz) dropped 2.6% of its frames on an idle 2-core machine, on stalls of a frame or
+    # two, and a KITTI run (10 Hz) whose tracker waited 0.8 s for local mapping lost its map
+    # on the 5-frame gap it then had to bridge.
+    frame_buffer_s: float = 0.5
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed) and self.speed >= 0):
             raise ConfigError(f"threads.speed: must be a finite number >= 0 (0: no pacing), found {self.speed!r}")
         if not (math.isfinite(self.keyframe_wait_s) and self.keyframe_wait_s >= 0):
             raise ConfigError(f"threads.keyframe_wait_s: must be a finite number >= 0, found {self.keyframe_wait_s!r}")
-        if self.frame_buffer < 0:
-            raise ConfigError(f"threads.frame_buffer: must be >= 0 (0: never drop a frame), found {self.frame_buffer!r}")
+        if not (math.isfinite(self.frame_buffer_s) and self.frame_buffer_s >= 0):
+            raise ConfigError(
+                f"threads.frame_buffer_s: must be a finite number >= 0 (0: never drop a frame), found {self.frame_buffer_s!r}"
+            )

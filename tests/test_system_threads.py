@@ -64,7 +64,7 @@ def _no_drops(c: Configs | None = None) -> Configs:
     """Configs whose paced threaded runs process every frame, however late (the default
     drops frames when the system falls behind its camera, which a loaded test machine may)."""
     c = c or Configs()
-    return dataclasses.replace(c, threads=dataclasses.replace(c.threads, frame_buffer=0))
+    return dataclasses.replace(c, threads=dataclasses.replace(c.threads, frame_buffer_s=0.0))
 
 
 @pytest.fixture(scope="module")
@@ -219,13 +219,14 @@ def test_threaded_run_takes_frames_no_faster_than_their_timestamps(seq, speed):
 
 
 def test_a_paced_run_behind_its_camera_drops_frames_and_counts_them(seq):
-    """A camera at 4 Hz, a queue of 2 frames (the default threads.frame_buffer) and a
+    """A camera at 4 Hz, a queue of 0.5 s (the default threads.frame_buffer_s) and a
     tracker that takes 0.9 s more on frames 5 and 12: a frame is dropped unprocessed when
-    2 newer ones have arrived by the time the system is ready for it, as a camera driver
-    with that queue drops them, and counted; every other frame is processed, in order."""
+    the frames of the next 0.5 s have arrived by the time the system is ready for it, as a
+    camera driver with that queue drops them, and counted; every other frame is
+    processed, in order."""
     t = np.arange(20) * 0.25
     system = System(seq.camera, sequential=False)
-    assert system.configs.threads.frame_buffer == 2
+    assert system.configs.threads.frame_buffer_s == 0.5
     processed = []
     track = system.tracker.track
 

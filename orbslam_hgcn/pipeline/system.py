@@ -179,17 +179,17 @@ class _Prefetch:
     when the job starts; if the state has changed when the frame is processed,
     :meth:`System.process` extracts again.
 
-    With ``buffer`` > 0, a paced run behind its camera drops frames as a camera driver
-    with a queue of ``buffer`` frames does: a frame is dropped, unprocessed, when the camera
-    would already have delivered ``buffer`` newer ones by the time the system is ready for
-    it. 0: no frame is dropped.
+    With ``buffer_s`` > 0, a paced run behind its camera drops frames as a camera driver
+    whose queue holds ``buffer_s`` seconds of frames does: a frame is dropped, unprocessed,
+    when the camera would already have delivered the frames of the next ``buffer_s``
+    seconds by the time the system is ready for it. 0: no frame is dropped.
     """
 
     def __init__(
-        self, system: System, sequence: Sequence, n: int, pacer: _Pacer, ahead: int = 4, buffer: int = 0
+        self, system: System, sequence: Sequence, n: int, pacer: _Pacer, ahead: int = 4, buffer_s: float = 0.0
     ) -> None:
         self.system, self.sequence, self.n, self.pacer = system, sequence, n, pacer
-        self.buffer = buffer
+        self.buffer_s = buffer_s
         self._timestamps = np.asarray(sequence.timestamps, dtype=np.float64)
         self._records: queue.Queue = queue.Queue(maxsize=ahead)
         self._stop = threading.Event()
@@ -232,7 +232,7 @@ class _Prefetch:
         else:
             rec, features = self._job(i)
         dropped: list[FrameRecord] = []
-        while self.buffer > 0 and i + self.buffer < self.n and self.pacer.delivered(self._timestamps[i + self.buffer]):
+        while self.buffer_s > 0 and i + 1 < self.n and self.pacer.delivered(self._timestamps[i] + self.buffer_s):
             dropped.append(rec)
             i += 1
             rec, features = self._job(i)
@@ -440,14 +440,30 @@ class System:
             for kf in result.new_keyframes:
                 self._on_keyframe(kf)
         if result.keyframe_starved and self.configs.threads.keyframe_wait_s > 0:
-            t2 = time.perf_counter()
-            stages.wait_for_mapping(self.configs.threads.keyframe_wait_s)
-            self.timings["keyframe_wait"].append(1000.0 * (time.perf_counter() - t2))
+            self._map_starved_frame(result, stages)
         self.timings["frame"].append(1000.0 * (time.perf_counter() - t0))
         self.frame_started.append(t0)
         optimising = optimising or stages.optimising or stages.activity.started != started
         self.frame_optimising.append(bool(optimising))
         return result
+
+    def _map_starved_frame(self, result: TrackResult, stages: SequentialStages | ThreadedStages) -> None:
+        """A keyframe was due on this frame but local mapping was busy (result.keyframe_starved):
+        wait for mapping to take one, make it from this frame, and wait for mapping to
+        triangulate its points, all within threads.keyframe_wait_s, so that the next frame
+        finds a local map. A paced run drops the frames that arrive meanwhile."""
+        t0 = time.perf_counter()
+        deadline = t0 + self.configs.threads.keyframe_wait_s
+        if stages.wait_for_mapping(self.configs.threads.keyframe_wait_s):
+            with stages.handover():
+                with first(self.tracker.map.lock):
+                    kf = self.tracker.keyframe_now(result.frame, result.n_inliers)
+                if kf is not None:
+                    result.new_keyframes.append(kf)
+                    self._on_keyframe(kf)
+            if kf is not None:
+                stages.wait_for_mapping(max(0.0, deadline - time.perf_counter()))
+        self.timings["keyframe_wait"].append(1000.0 * (time.perf_counter() - t0))
 
     def _on_keyframe(self, kf: KeyFrame) -> None:
         if not self.configs.system.local_mapping:
@@ -506,7 +522,7 @@ class System:
                 warm.start()
                 self._extraction.start()  # before the reader takes the first frame
                 warm.join()
-            prefetch = _Prefetch(self, sequence, n, pacer, buffer=threads.frame_buffer)
+            prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=threads.frame_buffer_s)
         if isinstance(stages, ThreadedStages):
             stages.wait_ready()
         try:

@@ -50,6 +50,17 @@ def orthonormalize(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def scale_motion(T: np.ndarray, r: float) -> np.ndarray:
+    """(4, 4) rigid motion ``T`` scaled by ``r`` in time: rotation angle and translation
+    times r (about the same axis; the constant-velocity prediction over r frame periods)."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(T[:3, :3]).as_rotvec() * r).as_matrix()
+    out[:3, 3] = T[:3, 3] * r
+    return out
+
+
 def pose_from_reference(m: Map, ref_kf_id: int, T_cr: np.ndarray) -> np.ndarray | None:
     """(4, 4) T_cw of a frame stored relative to keyframe ``ref_kf_id`` (T_cw = T_cr T_rw).
 

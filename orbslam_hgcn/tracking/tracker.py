@@ -40,6 +40,7 @@ from orbslam_hgcn.tracking.frame_ops import (
     orthonormalize,
     pose_from_reference,
     refresh_frame_points,
+    scale_motion,
 )
 from orbslam_hgcn.tracking.initializer import InitialMap, MonocularInitializer
 from orbslam_hgcn.tracking.keyframe_decision import (
@@ -149,6 +150,7 @@ class Tracker:
         self.state = TrackingState.NOT_INITIALIZED
         self.last_frame: Frame | None = None
         self.velocity: np.ndarray | None = None
+        self.velocity_dt = 0.0  # camera time the velocity covers (s)
         self.ref_kf_id = -1
         self.last_kf_frame_id = -1
         self.last_kf_timestamp = float("nan")
@@ -245,7 +247,8 @@ class Tracker:
             last = self.last_frame
             self._update_last_frame()
             if self.velocity is not None and frame.id >= self.last_reloc_frame_id + 2:
-                ok = track_with_motion_model(frame, grid, last, self.velocity, m, cfg, self.backend)
+                ok = track_with_motion_model(frame, grid, last, self._predicted_motion(frame, last), m, cfg,
+                                             self.backend)  # fmt: skip
             if not ok:
                 ok = self._track_reference(frame, grid, last)
         elif self.relocalizer is not None:
@@ -262,6 +265,7 @@ class Tracker:
             self.state = TrackingState.OK
             if self.last_frame is not None and self.last_frame.T_cw is not None:
                 self.velocity = orthonormalize(frame.T_cw @ inv_T(self.last_frame.T_cw))
+                self.velocity_dt = frame.timestamp - self.last_frame.timestamp
             kf, result.keyframe_starved = self._maybe_keyframe(frame, n_in)
             if kf is not None:
                 result.new_keyframes.append(kf)
@@ -290,6 +294,18 @@ class Tracker:
                 log.warning("no relocalisation available: the remaining frames are counted as lost")
         result.state = self.state
         return result
+
+    def _predicted_motion(self, frame: Frame, last: Frame) -> np.ndarray:
+        """The constant-velocity motion from ``last`` to ``frame``: the last frame-to-frame
+        motion, scaled by the ratio of the time gaps when frames were skipped or dropped
+        between them (ORB-SLAM applies the last motion as it is, every frame being
+        processed; a dropped frame would then leave the prediction a whole frame short)."""
+        dt = frame.timestamp - last.timestamp
+        if self.velocity_dt > 0 and np.isfinite(dt) and dt > 0:
+            r = dt / self.velocity_dt
+            if abs(r - 1.0) > 0.25:
+                return scale_motion(self.velocity, min(r, 5.0))
+        return self.velocity
 
     def _compute_bow(self, frame: Frame) -> None:
         if self.vocabulary is not None and frame.featvec is None:
@@ -335,6 +351,15 @@ class Tracker:
         if self.last_reloc_frame_id >= 0 and frame.id < self.last_reloc_frame_id + n_max:
             return n_in >= cfg.min_inliers_relocalised, n_in
         return n_in >= cfg.min_inliers, n_in
+
+    def keyframe_now(self, frame: Frame, n_in: int) -> KeyFrame | None:
+        """After waiting for a busy local mapping (a keyframe_starved frame): make the
+        keyframe the rules asked for on ``frame``, the last frame tracked, if they still
+        ask for it now that mapping may take it; None otherwise."""
+        if frame is not self.last_frame or self.state != TrackingState.OK or frame.T_cw is None:
+            return None
+        kf, _ = self._maybe_keyframe(frame, n_in)
+        return kf
 
     def _maybe_keyframe(self, frame: Frame, n_in: int) -> tuple[KeyFrame | None, bool]:
         """(the new keyframe or None, whether one was due but local mapping was busy)."""
