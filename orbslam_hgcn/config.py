@@ -729,12 +729,20 @@ class ThreadsConfig:
     # two, and a KITTI run (10 Hz) whose tracker waited 0.8 s for local mapping lost its map
     # on the 5-frame gap it then had to bridge.
     frame_buffer_s: float = 0.5
+    # Paced threaded runs: after handing a keyframe to local mapping, the tracker waits (at
+    # most this many seconds) until mapping has finished it, so that the next frames see
+    # its points and pose as a sequential run would; the frames that arrive meanwhile wait
+    # in the frame queue. When every keyframe is mapped within the bound, the run gives
+    # exactly the sequential run's result. 0: never waits (as ORB-SLAM's threads).
+    sync_mapping_s: float = 0.5
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed) and self.speed >= 0):
             raise ConfigError(f"threads.speed: must be a finite number >= 0 (0: no pacing), found {self.speed!r}")
         if not (math.isfinite(self.keyframe_wait_s) and self.keyframe_wait_s >= 0):
             raise ConfigError(f"threads.keyframe_wait_s: must be a finite number >= 0, found {self.keyframe_wait_s!r}")
+        if not (math.isfinite(self.sync_mapping_s) and self.sync_mapping_s >= 0):
+            raise ConfigError(f"threads.sync_mapping_s: must be a finite number >= 0 (0: off), found {self.sync_mapping_s!r}")
         if not (math.isfinite(self.frame_buffer_s) and self.frame_buffer_s >= 0):
             raise ConfigError(
                 f"threads.frame_buffer_s: must be a finite number >= 0 (0: never drop a frame), found {self.frame_buffer_s!r}"

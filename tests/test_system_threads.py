@@ -67,11 +67,31 @@ def _no_drops(c: Configs | None = None) -> Configs:
     return dataclasses.replace(c, threads=dataclasses.replace(c.threads, frame_buffer_s=0.0))
 
 
+def _threads(**kw) -> Configs:
+    c = Configs()
+    return dataclasses.replace(c, threads=dataclasses.replace(c.threads, **kw))
+
+
 @pytest.fixture(scope="module")
 def threaded_run(seq):
-    system = System(seq.camera, _no_drops(), sequential=False)
+    # As ORB-SLAM's threads: tracking goes on while local mapping works (no sync).
+    system = System(seq.camera, _threads(frame_buffer_s=0.0, sync_mapping_s=0.0), sequential=False)
     summary = system.run(seq, N_FRAMES, progress=False)
     return system, summary
+
+
+def test_threaded_run_with_mapping_sync_equals_the_sequential_run(seq, sequential_runs):
+    """With threads.sync_mapping_s (default 0.5 s; 10 s here so that a loaded test machine
+    keeps up) a paced threaded run gives the sequential run's result, bit for bit."""
+    system = System(seq.camera, _threads(frame_buffer_s=0.0, sync_mapping_s=10.0), sequential=False)
+    system.run(seq, N_FRAMES, progress=False)
+    ref = sequential_runs[0]
+    for get in (System.keyframe_trajectory, System.camera_trajectory):
+        a, b = get(system), get(ref)
+        np.testing.assert_array_equal(a.timestamps, b.timestamps)
+        np.testing.assert_array_equal(a.poses, b.poses)
+    assert system.timings["mapping_sync"] and max(system.timings["mapping_sync"]) > 0
+    _assert_nothing_left()
 
 
 def test_sequential_runs_are_identical(sequential_runs):

@@ -119,7 +119,7 @@ class SequentialStages:
         """Nothing runs beside the tracker."""
         yield
 
-    def wait_for_mapping(self, timeout_s: float) -> bool:
+    def wait_for_mapping(self, timeout_s: float, poll_s: float = 0.0, done: bool = False) -> bool:
         """Local mapping is idle already."""
         return True
 
@@ -201,12 +201,19 @@ class ThreadedStages:
             return True
         return bool(self.mapper.in_ba) and w.pending == 0
 
-    def wait_for_mapping(self, timeout_s: float, poll_s: float = 0.002) -> bool:
+    def mapping_done(self) -> bool:
+        """Local mapping has finished every keyframe handed to it (nothing queued or running)."""
+        w = self._mapping
+        return w is not None and not w.busy and w.pending == 0
+
+    def wait_for_mapping(self, timeout_s: float, poll_s: float = 0.002, done: bool = False) -> bool:
         """Wait until local mapping accepts a keyframe (:meth:`mapping_idle`: idle, or in
-        a local BA that the next keyframe will cut short), at most ``timeout_s``; True
-        when it does. Returns False at once during a pause or the shutdown."""
+        a local BA that the next keyframe will cut short), or with ``done`` until it has
+        finished every keyframe (:meth:`mapping_done`), at most ``timeout_s``; True when it
+        does. Returns False at once during a pause or the shutdown."""
         deadline = time.perf_counter() + timeout_s
-        while not self.mapping_idle():
+        ready = self.mapping_done if done else self.mapping_idle
+        while not ready():
             if self._paused or self._stopping or time.perf_counter() >= deadline:
                 return False
             self.check()

@@ -163,9 +163,15 @@ class _Pacer:
     def delivered(self, timestamp: float) -> bool:
         """Whether a camera would already have delivered the frame of ``timestamp`` (False
         when not pacing, or before the first frame)."""
+        due = self.due(timestamp)
+        return due is not None and due <= time.perf_counter()
+
+    def due(self, timestamp: float) -> float | None:
+        """When (time.perf_counter) a camera delivers the frame of ``timestamp``; None when
+        not pacing or before the first frame."""
         if self.speed <= 0 or self._anchor is None or not np.isfinite(timestamp):
-            return False
-        return self._anchor[0] + (timestamp - self._anchor[1]) / self.speed <= time.perf_counter()
+            return None
+        return self._anchor[0] + (timestamp - self._anchor[1]) / self.speed
 
 
 class _Prefetch:
@@ -311,6 +317,7 @@ class System:
         self.mapper = LocalMapper(self.map, c.local_mapping, c.backend, vocabulary=vocabulary)
         self.timings: dict[str, list[float]] = {
             "extraction": [], "tracking": [], "tracking_cpu": [], "frame": [], "lock_wait": [], "keyframe_wait": [],
+            "mapping_sync": [],
         }  # fmt: skip
         # Per frame of timings["frame"]: whether a BA or pose graph was being solved during it,
         # and when (time.perf_counter) the frame's extraction started.
@@ -318,6 +325,7 @@ class System:
         self.frame_started: list[float] = []
         self.events: list[dict[str, Any]] = []
         self.n_resets = 0
+        self._paced = False  # run() is taking frames at their camera's rate
         # Called as observer(system, record, result) after every frame of :meth:`run`
         # (visualisation, progress reporting); they must not change the map.
         self.observers: list[Callable[[System, FrameRecord, TrackResult], None]] = []
@@ -439,12 +447,19 @@ class System:
         if result.reset:
             for kf in result.new_keyframes:
                 self._on_keyframe(kf)
-        if result.keyframe_starved and self.configs.threads.keyframe_wait_s > 0:
-            self._map_starved_frame(result, stages)
+        # The frame's latency: from the start of its extraction to its pose. The waits
+        # below hold the next frames, whose latency then counts them.
         self.timings["frame"].append(1000.0 * (time.perf_counter() - t0))
         self.frame_started.append(t0)
         optimising = optimising or stages.optimising or stages.activity.started != started
         self.frame_optimising.append(bool(optimising))
+        if result.keyframe_starved and self.configs.threads.keyframe_wait_s > 0:
+            self._map_starved_frame(result, stages)
+        elif result.new_keyframes and self._paced and self.configs.threads.sync_mapping_s > 0:
+            # Local mapping finishes the keyframe before the next frame is tracked.
+            t3 = time.perf_counter()
+            stages.wait_for_mapping(self.configs.threads.sync_mapping_s, done=True)
+            self.timings["mapping_sync"].append(1000.0 * (time.perf_counter() - t3))
         return result
 
     def _map_starved_frame(self, result: TrackResult, stages: SequentialStages | ThreadedStages) -> None:
@@ -540,6 +555,7 @@ class System:
                     done += 1
                     bar.update(1)
                 t_frame = time.perf_counter()
+                self._paced = pacer.speed > 0
                 result = self.process(rec.image, rec.timestamp, rec.index, features)
                 if self.observers:
                     with self.map.lock:
@@ -607,6 +623,7 @@ class System:
                 "frame_total_while_optimising": summary_ms(np.asarray(self.timings["frame"])[opt]),
                 "map_lock_wait_per_frame": summary_ms(self.timings["lock_wait"]),
                 "keyframe_wait": summary_ms(self.timings["keyframe_wait"]),
+                "mapping_sync": summary_ms(self.timings["mapping_sync"]),
                 "local_mapping_per_keyframe": summary_ms(mt.get("total", [])),
                 "local_mapping_cpu_per_keyframe": summary_ms(mt.get("total_cpu", [])),
                 "local_ba_per_keyframe": summary_ms(mt.get("local_ba", [])),
