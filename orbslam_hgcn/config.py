@@ -535,6 +535,12 @@ class TrackingConfig:
     # A map with at most this many keyframes is discarded when tracking is lost, and
     # initialisation starts over (ORB-SLAM2: 5).
     reset_max_keyframes: int = 5
+    # With an atlas (the system's default): once tracking has been lost this many seconds
+    # of camera time and relocalisation keeps failing, a new map is started and the lost
+    # one kept, to be merged when the camera comes back to it (ORB-SLAM3 waits a few seconds
+    # before it gives a map up; 1 s here, so that a run goes on within about a second of a
+    # stretch it cannot track).
+    new_map_after_s: float = 1.0
     # Matches the pose optimiser rejects are kept for the new keyframe (ORB-SLAM2 lets
     # them pass so that local BA decides on them); False drops them.
     keyframe_keeps_outliers: bool = True
@@ -730,10 +736,12 @@ class ThreadsConfig:
     # on the 5-frame gap it then had to bridge.
     frame_buffer_s: float = 0.5
     # Paced threaded runs: after handing a keyframe to local mapping, the tracker waits (at
-    # most this many seconds) until mapping has finished it, so that the next frames see
-    # its points and pose as a sequential run would; the frames that arrive meanwhile wait
-    # in the frame queue. When every keyframe is mapped within the bound, the run gives
-    # exactly the sequential run's result. 0: never waits (as ORB-SLAM's threads).
+    # most this many seconds, and never past half the frame queue after the next frame's
+    # arrival, so that no frame is dropped for it) until mapping has finished it, so that
+    # the next frames see its points and pose as a sequential run would; the frames that
+    # arrive meanwhile wait in the frame queue. When every keyframe is mapped within the
+    # bound, the run gives exactly the sequential run's result. 0: never waits (as
+    # ORB-SLAM's threads).
     sync_mapping_s: float = 0.5
 
     def __post_init__(self) -> None:

@@ -50,17 +50,20 @@ def read_npz(path: Path, what: str, error: type[OrbslamError]) -> dict[str, np.n
 
 
 def read_versioned_npz(
-    path: Path, what: str, magic: str, version: int, error: type[OrbslamError], rebuild_hint: str
+    path: Path, what: str, magic: str, version: int | tuple[int, ...], error: type[OrbslamError], rebuild_hint: str
 ) -> dict[str, np.ndarray]:
     """:func:`read_npz`, then the scalar ``_magic`` must equal ``magic`` and
-    ``_format_version`` equal ``version``; ``rebuild_hint`` ends the version error."""
+    ``_format_version`` be ``version`` (or one of them); ``rebuild_hint`` ends the version
+    error."""
     arrays = read_npz(path, what, error)
     found_magic = arrays.get("_magic")
     if found_magic is None or found_magic.shape != () or str(found_magic) != magic:
         raise error(f"{path}: not an orbslam_hgcn {what} file (no '{magic}' header)")
+    versions = (version,) if isinstance(version, int) else tuple(version)
     found = arrays.get("_format_version")
-    if found is None or found.shape != () or int(found) != version:
+    if found is None or found.shape != () or int(found) not in versions:
         shown = "none" if found is None else str(found)
+        readable = " and ".join(str(v) for v in versions)
         raise error(f"{path}: {what} format version {shown} is not supported (this software reads version "
-                    f"{version}); {rebuild_hint}")
+                    f"{readable}); {rebuild_hint}")
     return arrays

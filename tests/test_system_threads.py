@@ -81,9 +81,10 @@ def threaded_run(seq):
 
 
 def test_threaded_run_with_mapping_sync_equals_the_sequential_run(seq, sequential_runs):
-    """With threads.sync_mapping_s (default 0.5 s; 10 s here so that a loaded test machine
-    keeps up) a paced threaded run gives the sequential run's result, bit for bit."""
-    system = System(seq.camera, _threads(frame_buffer_s=0.0, sync_mapping_s=10.0), sequential=False)
+    """With threads.sync_mapping_s (default 0.5 s, bounded by half the frame queue; 10 s
+    and a 20 s queue here so that a loaded test machine keeps up) a paced threaded run
+    gives the sequential run's result, bit for bit."""
+    system = System(seq.camera, _threads(frame_buffer_s=20.0, sync_mapping_s=10.0), sequential=False)
     system.run(seq, N_FRAMES, progress=False)
     ref = sequential_runs[0]
     for get in (System.keyframe_trajectory, System.camera_trajectory):

@@ -5,7 +5,8 @@ Sec. VII; LoopClosing::Run of ORB-SLAM2): detect (:mod:`.detector`), verify with
 similarity (:mod:`.sim3_check`), correct (:mod:`.corrector`), then, by default, a global
 bundle adjustment (:mod:`.global_ba`). Every keyframe is indexed in the keyframe database,
 which relocalisation shares; with ``LoopClosingConfig.enabled`` False that indexing is all
-it does.
+it does. In an atlas the database holds the keyframes of every map, and a verified match
+with a keyframe of another map merges that map into the active one (:mod:`.merge`).
 
 The map must stay still while a loop is corrected. ``pause_mapping`` (optional) is called
 with True before the correction and False after it, so a threaded system can stop local
@@ -30,6 +31,7 @@ from orbslam_hgcn.config import BackendConfig, LoopClosingConfig
 from orbslam_hgcn.loop.corrector import Correction, correct_loop
 from orbslam_hgcn.loop.detector import Detection, LoopDetector
 from orbslam_hgcn.loop.global_ba import GlobalBAResult, run_global_ba
+from orbslam_hgcn.loop.merge import MergeEvent, merge_maps
 from orbslam_hgcn.loop.sim3_check import LoopMatch, Sim3Attempt, compute_sim3
 from orbslam_hgcn.map import KeyFrame, Map
 from orbslam_hgcn.vocabulary.database import KeyframeDatabase
@@ -95,29 +97,56 @@ class LoopCloser:
         self.detector = LoopDetector(m, database, self.config)
         self.rng = np.random.default_rng(self.config.seed)
         self.loops: list[LoopEvent] = []
+        self.merges: list[MergeEvent] = []
         self.detections: list[Detection] = []  # keyframes with database candidates
         self.attempts: list[Sim3Attempt] = []
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.counts: dict[str, int] = defaultdict(int)
         self.map = m
 
-    def reset(self, m: Map) -> None:
-        """Work on map ``m`` from now on (the database is emptied)."""
+    def reset(self, m: Map, keep_database: bool = False) -> None:
+        """Work on map ``m`` from now on (the database is emptied unless ``keep_database``:
+        the maps of an atlas share it)."""
         self.map = m
-        self.detector.reset(m)
+        self.detector.reset(m, keep_database)
 
     # --- the entry -----------------------------------------------------------------------
-    def process(self, kf: KeyFrame) -> LoopEvent | None:
-        """Index ``kf`` and look for a loop; close it when found. Returns the loop, or None."""
+    def process(self, kf: KeyFrame) -> LoopEvent | MergeEvent | None:
+        """Index ``kf`` and look for a loop; close it when found. In an atlas the place may
+        be one of another map: the maps are then merged. Returns the loop or the merge,
+        or None."""
         m = self.map
         with m.lock:
             found = self._find(kf)
         if found is None:
             return None
         try:
+            if not m.owns(found[0].loop_kf_id):
+                return self._merge(kf, *found)
             return self._close(kf, *found)
         finally:
             m.set_erase(kf.id)
+
+    def _merge(self, kf: KeyFrame, match: LoopMatch, time_ms: dict[str, float]) -> MergeEvent:
+        """Merge the matched keyframe's map into this one (:mod:`.merge`)."""
+        if self.pause_mapping is not None:
+            self.pause_mapping(True)
+        try:
+            event = merge_maps(self.map, match, self.config, self.backend, self.solver)
+        finally:
+            if self.pause_mapping is not None:
+                self.pause_mapping(False)
+        event.time_ms.update(time_ms)
+        if self.config.global_ba:
+            t = time.perf_counter()
+            run_global_ba(self.map, self.config.global_ba_iterations, self.backend, self.config.global_ba_time_budget_s,
+                          solver=self.solver, pause_mapping=self.pause_mapping)  # fmt: skip
+            event.time_ms["global_ba"] = 1000.0 * (time.perf_counter() - t)
+        self.detector.last_loop_kf_id = kf.id
+        self.detector.filter.clear()
+        self.merges.append(event)
+        self.counts["merges"] += 1
+        return event
 
     def _find(self, kf: KeyFrame) -> tuple[LoopMatch, dict[str, float]] | None:
         """Index ``kf``, detect and verify a loop: (match, step times) or None. With a
@@ -210,6 +239,7 @@ class LoopCloser:
         return {
             "counts": dict(self.counts),
             "loops": [e.to_dict() for e in self.loops],
+            "merges": [e.to_dict() for e in self.merges],
             "candidate_outcomes": dict(stages),
             "timing_ms": {k: float(np.mean(v)) if v else 0.0 for k, v in self.timings.items()},
         }

@@ -99,18 +99,25 @@ class LoopDetector:
         self.filter = ConsistencyFilter(self.config.consistency_threshold)
         self.last_loop_kf_id = 0
 
-    def reset(self, m: Map) -> None:
-        """Work on map ``m``: empty database and groups."""
+    def reset(self, m: Map, keep_database: bool = False) -> None:
+        """Work on map ``m``: empty groups, and database unless ``keep_database``."""
         self.map = m
-        self.database.clear()
+        if not keep_database:
+            self.database.clear()
         self.filter.clear()
-        self.last_loop_kf_id = 0
+        # Keyframe ids run on across the maps of an atlas: count from the new map's first.
+        self.last_loop_kf_id = m.atlas.next_keyframe_id() if m.atlas is not None and not m.n_keyframes() else 0
 
     def purge(self) -> None:
-        """Drop culled keyframes from the database (ORB-SLAM erases them on SetBadFlag)."""
+        """Drop culled keyframes, and those of discarded maps, from the database (ORB-SLAM
+        erases them on SetBadFlag)."""
         m = self.map
         for k in self.database.keyframes():
-            if m.keyframe(k).bad:
+            try:
+                bad = m.keyframe(k).bad
+            except KeyError:
+                bad = True
+            if bad:
                 self.database.erase(k)
 
     def min_covisible_score(self, kf: KeyFrame) -> tuple[float, list[int]]:

@@ -129,7 +129,8 @@ def snapshot(m: Map) -> MapSnapshot:
 def check_invariants(m: Map) -> list[str]:
     """Every violation of the map's link invariants, as readable lines (empty: consistent).
 
-    Checks: each observation is linked at both ends and only between good objects; bad
+    Checks: each observation is linked at both ends and only between good objects of the
+    map (in an atlas, its own points: the point store is shared); bad
     points and keyframes hold no links; shared-point counts (covisibility weights) equal a
     recount from the observations and are symmetric; the spanning tree links good keyframes
     both ways, has no cycle and reaches every good keyframe from the origin; loop edges are
@@ -138,7 +139,9 @@ def check_invariants(m: Map) -> list[str]:
     out: list[str] = []
     with m.lock:
         s, kfs = m._pts, m._kfs
-        for pid in range(s.n):
+        # In an atlas the point store is shared: check this map's points only.
+        own = range(s.n) if m.atlas is None else np.flatnonzero(s.owner[: s.n] == m.map_id).tolist()
+        for pid in own:
             obs = s.obs[pid]
             if s.bad[pid] and obs:
                 out.append(f"bad point {pid} still has observations {obs}")
@@ -160,6 +163,8 @@ def check_invariants(m: Map) -> list[str]:
                     continue
                 if s.obs[pid].get(k) != idx:
                     out.append(f"keyframe {k} slot {idx} holds point {pid} which does not list it")
+                if m.atlas is not None and s.owner[pid] != m.map_id:
+                    out.append(f"keyframe {k} slot {idx} holds point {pid} of map {s.owner[pid]}")
                 count.update(o for o in s.obs[pid] if o != k)
             if count != Counter(kf.shared):
                 diff = {o: (kf.shared.get(o, 0), count.get(o, 0)) for o in set(count) | set(kf.shared)}

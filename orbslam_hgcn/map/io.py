@@ -1,10 +1,13 @@
-"""A map in one file: keyframes, map points, their links and graphs, as a versioned ``.npz``.
+"""An atlas in one file: its maps' keyframes, map points, their links and graphs, as a
+versioned ``.npz``.
 
-File format (version 1), one zip archive of numpy arrays read without pickle:
+File format (version 2), one zip archive of numpy arrays read without pickle:
 
 * ``_magic``: the string ``orbslam_hgcn-map``; ``_format_version``: int
-  :data:`FORMAT_VERSION`; ``_meta``: JSON text (camera, map config, origin and next
-  keyframe id, counts, and whatever the caller adds, such as the vocabulary reference);
+  :data:`FORMAT_VERSION`; ``_meta``: JSON text (camera, map config, the maps (id and origin
+  keyframe) and the active one, next keyframe id, counts, and whatever the caller adds,
+  such as the vocabulary reference);
+* ``kf_map``: the map of each keyframe; ``pt_owner``: the map of each point;
 * keyframes (K good ones, by id): ``kf_id``, ``kf_frame_id``, ``kf_timestamp``,
   ``kf_T_cw`` (K, 4, 4), ``kf_parent`` (spanning tree), ``kf_flags`` (K, 3)
   (first_connection, not_erase, to_be_erased); their features concatenated, keyframe k
@@ -24,7 +27,9 @@ File format (version 1), one zip archive of numpy arrays read without pickle:
 Culled (bad) keyframes are not written. Reading checks the header, every array's CRC, the
 shapes, and that point slots, observations and covisibility weights agree; any problem is
 a :class:`MapFileError` naming the file. The BoW arrays are returned as plain arrays: the
-caller, who holds the vocabulary, turns them into vectors.
+caller, who holds the vocabulary, turns them into vectors. Version 1 files (one map, no
+``kf_map`` / ``pt_owner``, origin and next keyframe id in the header) are read as an atlas
+of that one map.
 """
 
 from __future__ import annotations
@@ -51,7 +56,8 @@ from orbslam_hgcn.npzfile import atomic_save_npz, read_versioned_npz
 log = logging.getLogger(__name__)
 
 MAGIC = "orbslam_hgcn-map"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 _KP_FIELDS = ("uv_raw", "uv", "octave", "angle", "response", "desc")
 _PT_FIELDS = ("position", "normal", "min_dist", "max_dist", "desc", "found", "visible", "first_kf", "ref_kf", "bad",
               "replaced_by")
@@ -65,7 +71,8 @@ class MapFileError(OrbslamError):
 class MapFile:
     """What :func:`read_map` returns.
 
-    map: the rebuilt Map (keyframes have ``bow``/``featvec`` None); meta: the header dict;
+    map: the atlas's active map; atlas: the rebuilt Atlas (keyframes have
+    ``bow``/``featvec`` None); meta: the header dict;
     bow: {kf_id: ((B,) int32 words, (B,) float32 weights)} for keyframes that had a BoW
     vector; nodes: {kf_id: (N,) int32 feature-vector node of each feature, -1 none} for
     keyframes that had a feature vector; path: the file read.
@@ -76,19 +83,30 @@ class MapFile:
     bow: dict[int, tuple[np.ndarray, np.ndarray]]
     nodes: dict[int, np.ndarray]
     path: Path
+    atlas: Any = None
 
 
 def _offsets(lengths: list[int]) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(lengths, dtype=np.int64)]).astype(np.int64)
 
 
-def map_to_arrays(m: Map, meta: dict[str, Any] | None = None) -> dict[str, np.ndarray]:
-    """Every array of the file format (header included) for map ``m``, read under its lock.
+def map_to_arrays(m: Map | Any, meta: dict[str, Any] | None = None) -> dict[str, np.ndarray]:
+    """Every array of the file format (header included) for an atlas, or the atlas of map
+    ``m`` (a map without one is written as an atlas of one map), read under its lock.
 
     meta: extra JSON-able header entries (e.g. ``{"vocabulary": {...}}``).
     """
-    with m.lock:
-        kfs = m.keyframes()
+    atlas = m if not isinstance(m, Map) else m.atlas
+    maps = list(atlas.maps.values()) if atlas is not None else [m]
+    maps = [mm for mm in maps if mm.n_keyframes()]  # a map just started holds nothing yet
+    if not maps:
+        raise MapFileError("the map has no keyframes; nothing to save")
+    active = atlas.active if atlas is not None else m
+    if active not in maps:
+        active = max(maps, key=lambda mm: mm.n_keyframes())
+    with maps[0].lock:
+        kfs = [kf for mm in maps for kf in mm.keyframes()]
+        kf_map = [mm.map_id for mm in maps for _ in mm.keyframes()]
         if not kfs:
             raise MapFileError("the map has no keyframes; nothing to save")
         camera = kfs[0].camera
@@ -96,6 +114,7 @@ def map_to_arrays(m: Map, meta: dict[str, Any] | None = None) -> dict[str, np.nd
             raise MapFileError("the map's keyframes come from different cameras; one camera per map file")
         a: dict[str, np.ndarray] = {
             "kf_id": np.array([kf.id for kf in kfs], np.int64),
+            "kf_map": np.array(kf_map, np.int64),
             "kf_frame_id": np.array([kf.frame_id for kf in kfs], np.int64),
             "kf_timestamp": np.array([kf.timestamp for kf in kfs], np.float64),
             "kf_T_cw": np.stack([kf.T_cw for kf in kfs]).astype(np.float64),
@@ -127,20 +146,26 @@ def map_to_arrays(m: Map, meta: dict[str, Any] | None = None) -> dict[str, np.nd
         a["covisibility"] = np.array(covis, np.int64).reshape(-1, 3)
         loops = sorted({(min(kf.id, o), max(kf.id, o)) for kf in kfs for o in kf.loop_edges})
         a["loop_edges"] = np.array(loops, np.int64).reshape(-1, 2)
-        s = m._pts
+        s = maps[0]._pts
         for name in _PT_FIELDS:
             a[f"pt_{name}"] = getattr(s, name)[: s.n].copy()
+        a["pt_owner"] = s.owner[: s.n].copy()
+        # Points of maps no longer in the atlas (discarded) are written as bad.
+        a["pt_bad"] = a["pt_bad"] | ~np.isin(a["pt_owner"], [mm.map_id for mm in maps])
         a["obs_offset"] = _offsets([len(o) for o in s.obs])
         a["obs_kf"] = np.array([k for o in s.obs for k in o], np.int64)
         a["obs_idx"] = np.array([i for o in s.obs for i in o.values()], np.int64)
+        next_kf = atlas._next_kf_id if atlas is not None else m._next_kf_id
         header = {
             "created": datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat(),
             "n_keyframes": len(kfs),
-            "n_points": int(np.count_nonzero(~s.bad[: s.n])),
-            "origin_id": int(m.origin_id),
-            "next_kf_id": int(m._next_kf_id),
+            "n_points": int(np.count_nonzero(~a["pt_bad"])),
+            "maps": [{"map_id": mm.map_id, "origin_id": int(mm.origin_id)} for mm in maps],
+            "active_map": int(active.map_id) if active is not None else int(maps[0].map_id),
+            "next_kf_id": int(max(next_kf, max(kf.id for kf in kfs) + 1)),
+            "next_map_id": int(atlas._next_map_id) if atlas is not None else 1,
             "camera": camera_to_dict(camera),
-            "map_config": dataclasses.asdict(m.config),
+            "map_config": dataclasses.asdict(maps[0].config),
         }
     header.update(meta or {})
     a["_magic"] = np.array(MAGIC)
@@ -149,8 +174,9 @@ def map_to_arrays(m: Map, meta: dict[str, Any] | None = None) -> dict[str, np.nd
     return a
 
 
-def save_map(path: str | Path, m: Map, meta: dict[str, Any] | None = None) -> Path:
-    """Write map ``m`` to ``path`` (atomically: a temporary file beside it, then a rename)."""
+def save_map(path: str | Path, m: Map | Any, meta: dict[str, Any] | None = None) -> Path:
+    """Write the atlas of map ``m`` (or atlas ``m``) to ``path`` (atomically: a temporary
+    file beside it, then a rename)."""
     arrays = map_to_arrays(m, meta)
     path = atomic_save_npz(path, arrays)
     log.info("wrote map (%d keyframes, %d points) to %s", len(arrays["kf_id"]), int((~arrays["pt_bad"]).sum()), path)
@@ -161,7 +187,7 @@ def read_header(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]
     """All arrays of a map file and its header dict; damage or another version is a
     MapFileError naming the file."""
     path = Path(path)
-    arrays = read_versioned_npz(path, "map", MAGIC, FORMAT_VERSION, MapFileError,
+    arrays = read_versioned_npz(path, "map", MAGIC, READABLE_VERSIONS, MapFileError,
                                 "build the map again with 'orbslam-hgcn run ... --save-map'")
     try:
         meta = json.loads(str(arrays["_meta"]))
@@ -177,11 +203,13 @@ def read_map(path: str | Path) -> MapFile:
     path = Path(path)
     arrays, meta = read_header(path)
     try:
-        m, bow, nodes = _build(arrays, meta, path)
+        atlas, bow, nodes = _build(arrays, meta, path)
     except (KeyError, ValueError, IndexError, TypeError) as exc:
         raise MapFileError(f"{path}: corrupt map file ({type(exc).__name__}: {exc})") from None
-    log.info("read map (%d keyframes, %d points) from %s", m.n_keyframes(), m.n_points(), path)
-    return MapFile(m, meta, bow, nodes, path)
+    m = atlas.active
+    log.info("read %d map(s) from %s; active map: %d keyframes, %d points", len(atlas), path, m.n_keyframes(),
+             m.n_points())  # fmt: skip
+    return MapFile(m, meta, bow, nodes, path, atlas)
 
 
 def _check(cond: bool, message: str) -> None:
@@ -189,12 +217,34 @@ def _check(cond: bool, message: str) -> None:
         raise ValueError(message)
 
 
-def _build(a: dict[str, np.ndarray], meta: dict[str, Any], path: Path) -> tuple[Map, dict, dict]:
+def _build(a: dict[str, np.ndarray], meta: dict[str, Any], path: Path) -> tuple[Any, dict, dict]:
+    from orbslam_hgcn.map.atlas import Atlas
+
     camera = camera_from_dict(meta["camera"], path)
     names = {f.name for f in dataclasses.fields(MapConfig)}
     config = MapConfig(**{k: v for k, v in meta.get("map_config", {}).items() if k in names})
-    m = Map(config)
     ids = a["kf_id"].astype(np.int64)
+    if "maps" in meta:  # version 2: an atlas
+        map_specs = [(int(d["map_id"]), int(d["origin_id"])) for d in meta["maps"]]
+        kf_map = a["kf_map"].astype(np.int64)
+        owner = a["pt_owner"].astype(np.int64)
+        active_id = int(meta["active_map"])
+    else:  # version 1: one map
+        map_specs = [(0, int(meta["origin_id"]))]
+        kf_map = np.zeros(len(ids), np.int64)
+        owner = np.zeros(len(a["pt_position"]), np.int64)
+        active_id = 0
+    _check(len(kf_map) == len(ids) and len(owner) == len(a["pt_position"]), "map membership arrays disagree in length")
+    atlas = Atlas(config)
+    atlas.maps.clear()
+    maps: dict[int, Map] = {}
+    for map_id, origin in map_specs:
+        mm = Map(config, atlas=atlas, map_id=map_id)
+        mm.origin_id = origin
+        maps[map_id] = atlas.maps[map_id] = mm
+    _check(active_id in maps and np.isin(kf_map, list(maps)).all(), "keyframes name a map that is not listed")
+    atlas.active = maps[active_id]
+    atlas._next_map_id = max(int(meta.get("next_map_id", 1)), max(maps) + 1)
     K = len(ids)
     feat_off, scale_off, bow_off = a["kf_feat_offset"], a["kf_scale_offset"], a["kf_bow_offset"]
     F = int(feat_off[-1])
@@ -219,11 +269,14 @@ def _build(a: dict[str, np.ndarray], meta: dict[str, Any], path: Path) -> tuple[
     store = PointStore(capacity=max(P, 16))
     for name in _PT_FIELDS:
         getattr(store, name)[:P] = a[f"pt_{name}"]
+    store.owner[:P] = owner
     store.n = P
     obs_kf, obs_idx = a["obs_kf"].tolist(), a["obs_idx"].tolist()
     bounds = obs_off.tolist()
     store.obs = [dict(zip(obs_kf[bounds[p]:bounds[p + 1]], obs_idx[bounds[p]:bounds[p + 1]])) for p in range(P)]
-    m._pts = store
+    atlas.points = store
+    for mm in maps.values():
+        mm._pts = store
 
     bow: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     nodes: dict[int, np.ndarray] = {}
@@ -235,18 +288,18 @@ def _build(a: dict[str, np.ndarray], meta: dict[str, Any], path: Path) -> tuple[
         kf._point_ids[:] = a["kp_point"][f0:f1]
         kf.parent = int(a["kf_parent"][k])
         kf.first_connection, kf.not_erase, kf.to_be_erased = (bool(x) for x in a["kf_flags"][k])
-        m._kfs[kf_id] = kf
+        maps[int(kf_map[k])]._kfs[kf_id] = kf
         if a["kf_has_bow"][k]:
             b0, b1 = int(bow_off[k]), int(bow_off[k + 1])
             bow[kf_id] = (a["bow_words"][b0:b1].astype(np.int32), a["bow_weights"][b0:b1].astype(np.float32))
         if a["kf_has_featvec"][k]:
             nodes[kf_id] = a["kp_node"][f0:f1].astype(np.int32)
-    m.origin_id = int(meta["origin_id"])
-    m._next_kf_id = max(int(meta["next_kf_id"]), int(ids.max()) + 1)
-    _check(m.origin_id in m._kfs, f"origin keyframe {m.origin_id} missing")
+    atlas._next_kf_id = max(int(meta["next_kf_id"]), int(ids.max()) + 1)
+    for mm in maps.values():
+        _check(mm.origin_id in mm._kfs, f"origin keyframe {mm.origin_id} of map {mm.map_id} missing")
 
     # Links: slots against observations, tree, covisibility weights against a recount.
-    kfs = m._kfs
+    kfs = {k: kf for mm in maps.values() for k, kf in mm._kfs.items()}
     for pid, obs in enumerate(store.obs):
         for k, idx in obs.items():
             _check(k in kfs and kfs[k]._point_ids[idx] == pid, f"point {pid} observation ({k}, {idx}) has no slot")
@@ -269,4 +322,8 @@ def _build(a: dict[str, np.ndarray], meta: dict[str, Any], path: Path) -> tuple[
         _check(x in kfs and y in kfs, f"loop edge ({x}, {y}) names a missing keyframe")
         kfs[x].loop_edges.add(y)
         kfs[y].loop_edges.add(x)
-    return m, bow, nodes
+    for pid, obs in enumerate(store.obs):
+        for k in obs:
+            _check(maps[int(owner[pid])].owns(k), f"point {pid} of map {owner[pid]} is observed by keyframe {k} "
+                   "of another map")  # fmt: skip
+    return atlas, bow, nodes

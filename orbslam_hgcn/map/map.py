@@ -19,7 +19,7 @@ import logging
 import threading
 from collections import Counter
 from collections.abc import Mapping
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -43,22 +43,51 @@ class PointArrays(NamedTuple):
 
 
 class Map:
-    """Keyframes, map points, covisibility graph, spanning tree and loop edges."""
+    """Keyframes, map points, covisibility graph, spanning tree and loop edges.
 
-    def __init__(self, config: MapConfig | None = None) -> None:
+    atlas: the :class:`~orbslam_hgcn.map.atlas.Atlas` the map belongs to (its maps share
+    one lock, one keyframe id counter and one point store), or None for a map on its own;
+    map_id: the map's id in the atlas.
+    """
+
+    def __init__(self, config: MapConfig | None = None, atlas: Any = None, map_id: int = 0) -> None:
         self.config = config or MapConfig()
-        self.lock = threading.RLock()
+        self.atlas = atlas
+        self.map_id = int(map_id)
+        self._own_lock: Any = threading.RLock() if atlas is None else None
         self._kfs: dict[int, KeyFrame] = {}  # every keyframe ever added, bad ones included
-        self._pts = PointStore()
+        self._pts = atlas.points if atlas is not None else PointStore()
         self._next_kf_id = 0
         self.origin_id = -1  # the first keyframe: never culled, root of the spanning tree
+
+    @property
+    def lock(self) -> Any:
+        """The map's re-entrant lock (its atlas's, when it has one)."""
+        return self.atlas.lock if self.atlas is not None else self._own_lock
+
+    @lock.setter
+    def lock(self, lock: Any) -> None:
+        if self.atlas is not None:
+            self.atlas.lock = lock
+        else:
+            self._own_lock = lock
+
+    def _own_points(self, ids: np.ndarray) -> np.ndarray:
+        """The ids of ``ids`` (a prefix range of the store) that belong to this map."""
+        if self.atlas is None:
+            return ids
+        return ids[self._pts.owner[ids] == self.map_id]
 
     # --- creation ----------------------------------------------------------------------
     def add_keyframe(self, frame: Frame) -> KeyFrame:
         """Make a keyframe from a tracked frame (empty point slots) and insert it."""
         with self.lock:
-            kf = KeyFrame.from_frame(frame, self._next_kf_id)
-            self._next_kf_id += 1
+            if self.atlas is not None:
+                kf_id = self.atlas.next_keyframe_id()
+            else:
+                kf_id = self._next_kf_id
+                self._next_kf_id += 1
+            kf = KeyFrame.from_frame(frame, kf_id)
             self._kfs[kf.id] = kf
             if self.origin_id < 0:
                 self.origin_id = kf.id
@@ -69,7 +98,7 @@ class Map:
         """New point at (3,) ``position`` created by keyframe ``ref_kf_id``; returns its id."""
         with self.lock:
             self._good_kf(ref_kf_id)
-            return self._pts.new(position, ref_kf_id)
+            return self._pts.new(position, ref_kf_id, self.map_id)
 
     # --- observations ------------------------------------------------------------------
     def add_observation(self, kf_id: int, pid: int, idx: int) -> bool:
@@ -235,11 +264,11 @@ class Map:
     def point_ids(self) -> np.ndarray:
         """(P,) int64 ids of all good points."""
         with self.lock:
-            return np.flatnonzero(~self._pts.bad[: self._pts.n]).astype(np.int64)
+            return self._own_points(np.flatnonzero(~self._pts.bad[: self._pts.n]).astype(np.int64))
 
     def n_points(self) -> int:
         with self.lock:
-            return int(np.count_nonzero(~self._pts.bad[: self._pts.n]))
+            return len(self.point_ids())
 
     def positions(self, pids: np.ndarray) -> np.ndarray:
         """(M, 3) float64 copy of the positions of ``pids``."""
@@ -269,8 +298,18 @@ class Map:
 
     # --- keyframes ---------------------------------------------------------------------
     def keyframe(self, kf_id: int) -> KeyFrame:
-        """The keyframe with this id (bad ones included)."""
-        return self._kfs[kf_id]
+        """The keyframe with this id (bad ones included). In an atlas, the keyframes of its
+        other maps are found too (for reading: place recognition across maps)."""
+        kf = self._kfs.get(kf_id)
+        if kf is None:
+            if self.atlas is None:
+                raise KeyError(kf_id)
+            return self.atlas.keyframe(kf_id)
+        return kf
+
+    def owns(self, kf_id: int) -> bool:
+        """Whether keyframe ``kf_id`` (culled or not) belongs to this map."""
+        return int(kf_id) in self._kfs
 
     def keyframes(self) -> list[KeyFrame]:
         """All good keyframes in id order."""
@@ -299,30 +338,31 @@ class Map:
         """Points of the keyframe observed by at least ``min_obs`` keyframes (ORB-SLAM
         TrackedMapPoints, used by the keyframe decision)."""
         with self.lock:
-            _, pids = self._kfs[kf_id].observed_points()
+            _, pids = self.keyframe(kf_id).observed_points()
             return int(np.count_nonzero(self.n_observations(pids) >= min_obs))
 
     # --- covisibility and spanning tree ------------------------------------------------
     def covisible_keyframes(self, kf_id: int, n: int | None = None) -> np.ndarray:
         """(C,) int64 covisibility neighbours of ``kf_id`` by descending weight (the best n)."""
         with self.lock:
-            ids, _ = self._kfs[kf_id].covisible(self.config.covisibility_min_weight)
+            ids, _ = self.keyframe(kf_id).covisible(self.config.covisibility_min_weight)
             return ids[:n].copy() if n is not None else ids.copy()
 
     def covisible_by_weight(self, kf_id: int, min_weight: int) -> np.ndarray:
         """(C,) int64 keyframes sharing at least ``min_weight`` points, by descending weight."""
         with self.lock:
-            ids, w = self._kfs[kf_id].covisible(self.config.covisibility_min_weight)
+            kf = self.keyframe(kf_id)
+            ids, w = kf.covisible(self.config.covisibility_min_weight)
             if min_weight >= self.config.covisibility_min_weight:
                 return ids[w >= min_weight].copy()
-            shared = self._kfs[kf_id].shared
+            shared = kf.shared
             cand = sorted((k for k, c in shared.items() if c >= min_weight), key=lambda k: (-shared[k], k))
             return np.array(cand, dtype=np.int64)
 
     def covisibility_weight(self, a: int, b: int) -> int:
         """Number of map points keyframes ``a`` and ``b`` both observe."""
         with self.lock:
-            return self._kfs[a].shared.get(b, 0)
+            return self.keyframe(a).shared.get(b, 0)
 
     def update_connections(self, kf_id: int) -> None:
         """Recount the keyframe's shared points from its slots (fixing both directions if
@@ -369,15 +409,28 @@ class Map:
             kb.loop_edges.add(a)
             ka.not_erase = kb.not_erase = True
 
+    def _owner(self, kf_id: int) -> Map:
+        """The map holding ``kf_id``: this one, or another map of the atlas."""
+        if kf_id in self._kfs or self.atlas is None:
+            return self
+        other = self.atlas.map_of(kf_id)
+        return other if other is not None else self
+
     def set_not_erase(self, kf_id: int) -> None:
-        """Protect a keyframe from culling while the loop closer uses it."""
+        """Protect a keyframe from culling while the loop closer uses it (in an atlas, a
+        keyframe of another map too)."""
         with self.lock:
-            self._kfs[kf_id].not_erase = True
+            owner = self._owner(kf_id)
+            owner._kfs[kf_id].not_erase = True
 
     def set_erase(self, kf_id: int) -> None:
         """Lift the protection (kept while the keyframe has loop edges); a cull requested
         meanwhile happens now (ORB-SLAM KeyFrame::SetErase)."""
         with self.lock:
+            owner = self._owner(kf_id)
+            if owner is not self:
+                owner.set_erase(kf_id)
+                return
             kf = self._kfs[kf_id]
             if not kf.loop_edges:
                 kf.not_erase = False

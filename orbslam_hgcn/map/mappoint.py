@@ -162,7 +162,8 @@ class PointStore:
     position (P, 3) float64, normal (P, 3) float64 unit mean viewing direction,
     min_dist/max_dist (P,) float64, desc (P, 32) uint8 representative descriptor,
     found/visible (P,) int64 counters, first_kf/ref_kf (P,) int64, bad (P,) bool,
-    replaced_by (P,) int64 (-1: not replaced); obs: list of {kf_id: feature index}.
+    replaced_by (P,) int64 (-1: not replaced); owner (P,) int64 id of the map holding the
+    point (several maps of an atlas share one store); obs: list of {kf_id: feature index}.
     """
 
     def __init__(self, capacity: int = 1024) -> None:
@@ -189,9 +190,10 @@ class PointStore:
         grow("ref_kf", (), np.int64, -1)
         grow("bad", (), bool, False)
         grow("replaced_by", (), np.int64, -1)
+        grow("owner", (), np.int64, 0)  # id of the map holding the point (see map.atlas)
         self.capacity = cap
 
-    def new(self, position: np.ndarray, first_kf: int) -> int:
+    def new(self, position: np.ndarray, first_kf: int, owner: int = 0) -> int:
         if self.n == self.capacity:
             self._alloc(2 * self.capacity)
         pid = self.n
@@ -199,6 +201,7 @@ class PointStore:
         self.position[pid] = np.asarray(position, dtype=np.float64).reshape(3)
         self.first_kf[pid] = first_kf
         self.ref_kf[pid] = first_kf
+        self.owner[pid] = owner
         self.obs.append({})
         return pid
 

@@ -76,35 +76,41 @@ def check_vocabulary(mf: MapFile, vocabulary: Any) -> None:
 
 
 def load_map(path: str | Path, vocabulary: Any) -> MapFile:
-    """Read a map file and give its keyframes their BoW and feature vectors, after checking
-    that ``vocabulary`` is the one they were computed with."""
+    """Read a map file (an atlas) and give its keyframes their BoW and feature vectors,
+    after checking that ``vocabulary`` is the one they were computed with."""
     mf = read_map(path)
     check_vocabulary(mf, vocabulary)
     for kf_id, (words, weights) in mf.bow.items():
-        mf.map.keyframe(kf_id).bow = BowVector(words, weights)
+        mf.atlas.keyframe(kf_id).bow = BowVector(words, weights)
     for kf_id, nodes in mf.nodes.items():
-        mf.map.keyframe(kf_id).featvec = FeatureVector.from_nodes(nodes, nodes >= 0)
+        mf.atlas.keyframe(kf_id).featvec = FeatureVector.from_nodes(nodes, nodes >= 0)
     return mf
 
 
 def save_system_map(path: str | Path, system: Any, vocab_name: str | None = None) -> Path:
-    """Write ``system.map`` with a reference to ``system.vocabulary`` (opened as ``vocab_name``)."""
+    """Write ``system``'s atlas (every map) with a reference to ``system.vocabulary``
+    (opened as ``vocab_name``)."""
     meta: dict[str, Any] = {}
     if system.vocabulary is not None:
         meta["vocabulary"] = vocabulary_reference(system.vocabulary, vocab_name)
-    return save_map(path, system.map, meta)
+    return save_map(path, system.atlas, meta)
 
 
 def install_map(system: Any, m: Map, localization: bool = True) -> None:
-    """Make ``m`` the map of ``system`` (before its first frame).
+    """Make ``m`` (and its atlas, when it has one) the map of ``system`` (before its first
+    frame).
 
-    Replaces the tracker's map (a new tracker generation, state LOST so the next frame is
-    relocalised), hands it to the other stages (:meth:`System.use_map`), and rebuilds the keyframe database from the keyframes'
-    BoW vectors. ``localization``: the tracker then never makes keyframes nor resets the map.
+    Replaces the system's atlas and the tracker's map (a new tracker generation, state LOST
+    so the next frame is relocalised, against any map of the atlas), hands it to the other
+    stages (:meth:`System.use_map`), and rebuilds the keyframe database from every
+    keyframe's BoW vector. ``localization``: the tracker then never makes keyframes, starts
+    a map nor resets one.
     """
     if system.database is None or system.relocalizer is None:
         raise VocabularyError("tracking against a saved map needs a vocabulary (relocalisation)")
-    missing = [kf.id for kf in m.keyframes() if kf.bow is None]
+    atlas = m.atlas
+    every = [kf for mm in atlas.maps.values() for kf in mm.keyframes()] if atlas is not None else m.keyframes()
+    missing = [kf.id for kf in every if kf.bow is None]
     if missing:
         raise MapFileError(f"keyframes {missing[:5]} of the loaded map have no BoW vector; cannot relocalise")
     kf_camera = m.keyframes()[0].camera
@@ -113,12 +119,14 @@ def install_map(system: Any, m: Map, localization: bool = True) -> None:
                            f"{system.camera.width}x{system.camera.height}")
     if camera_to_dict(kf_camera) != camera_to_dict(system.camera):
         log.warning("the map's camera %s differs from the sequence's %s", kf_camera, system.camera)
+    if atlas is not None:
+        system.install_atlas(atlas, m)
     system.tracker.reset(m)
     system.tracker.state = TrackingState.LOST
     system.tracker.localization = bool(localization)
     system.use_map(m)
     system.database.clear()
-    for kf in m.keyframes():
+    for kf in every:
         system.database.add(kf.id, kf.bow)
     log.info("installed a map of %d keyframes and %d points%s", m.n_keyframes(), m.n_points(),
              " (localisation only)" if localization else "")

@@ -4,8 +4,9 @@ The camera trajectory is rebuilt as ORB-SLAM2's System::SaveTrajectoryTUM does: 
 tracked frame stored its pose relative to its reference keyframe, ``T_cr``; at the end its
 pose is ``T_cw = T_cr @ T_rw`` with the reference keyframe's optimised pose. A reference
 keyframe culled meanwhile is replaced by its spanning-tree parent through the relative pose
-it kept (``T_cp``). Frames without a pose (before initialisation, lost, or tracked in a
-map discarded by a reset) are left out of the file and counted.
+it kept (``T_cp``). Only the frames of one map are written (the largest of an atlas, or the
+map it was merged into); the others (before initialisation, lost, tracked in a map
+discarded by a reset or in another map of the atlas) are left out of the file and counted.
 """
 
 from __future__ import annotations
@@ -35,11 +36,16 @@ def keyframe_trajectory(m: Map) -> Trajectory:
     return Trajectory(np.array([kf.timestamp for kf in kfs]), np.stack([kf.T_wc for kf in kfs]))
 
 
-def camera_trajectory(records: Iterable[PoseRecord], m: Map, generation: int) -> Trajectory:
-    """T_wc of every frame with a pose in the current map (see the module text)."""
+def camera_trajectory(records: Iterable[PoseRecord], m: Map, generation: int | None = None) -> Trajectory:
+    """T_wc of every frame with a pose in map ``m`` (see the module text): its reference
+    keyframe is one of the map's (in an atlas keyframe ids are unique across maps, and a
+    merged map holds the keyframes of both). ``generation``: also only the records of that
+    generation (a tracker without an atlas numbers the keyframes of each new map from 0)."""
     stamps, poses = [], []
     for rec in records:
-        if rec.generation != generation or rec.T_cr is None or rec.ref_kf_id < 0:
+        if rec.T_cr is None or rec.ref_kf_id < 0 or not m.owns(rec.ref_kf_id):
+            continue
+        if generation is not None and rec.generation != generation:
             continue
         T_cw = pose_from_reference(m, rec.ref_kf_id, rec.T_cr)
         if T_cw is None:
@@ -53,19 +59,31 @@ def camera_trajectory(records: Iterable[PoseRecord], m: Map, generation: int) ->
     return Trajectory(np.asarray(stamps)[order], np.stack(poses)[order])
 
 
-def frame_counts(records: list[PoseRecord], generation: int) -> dict[str, Any]:
-    """Frames by outcome: tracked (with a pose in the current map), lost, not initialised,
-    discarded by a map reset, dropped unprocessed (a paced run behind its camera); and the
-    share of all frames tracked."""
-    cur = [r for r in records if r.generation == generation and not r.dropped]
-    tracked = sum(r.T_cr is not None for r in cur)
-    lost = sum(r.state == TrackingState.LOST for r in cur)
-    not_init = sum(r.T_cr is None and r.state == TrackingState.NOT_INITIALIZED for r in cur)
-    reset = sum(r.generation != generation and not r.dropped for r in records)
-    dropped = sum(r.dropped for r in records)
+def frame_counts(records: list[PoseRecord], m: Map, atlas: Any = None) -> dict[str, Any]:
+    """Frames by outcome, each counted once: tracked (a pose in map ``m``, the one the
+    trajectories are written from), in another map of the atlas (a pose in a map never
+    merged into ``m``), discarded by a map reset (a pose in a map since discarded), lost,
+    not initialised, dropped unprocessed (a paced run behind its camera); and the share of
+    all frames tracked."""
+    tracked = other = reset = lost = not_init = dropped = 0
+    for r in records:
+        if r.dropped:
+            dropped += 1
+        elif r.T_cr is not None and r.ref_kf_id >= 0:
+            if m.owns(r.ref_kf_id):
+                tracked += 1
+            elif atlas is not None and atlas.map_of(r.ref_kf_id) is not None:
+                other += 1
+            else:
+                reset += 1
+        elif r.state == TrackingState.LOST:
+            lost += 1
+        else:
+            not_init += 1
+    n = len(records)
     return {
-        "frames": len(records), "tracked": tracked, "lost": lost, "not_initialized": not_init, "reset": reset,
-        "dropped": dropped, "tracked_share": tracked / len(records) if records else 0.0,
+        "frames": n, "tracked": tracked, "lost": lost, "not_initialized": not_init, "reset": reset,
+        "dropped": dropped, "other_maps": other, "tracked_share": tracked / n if n else 0.0,
     }  # fmt: skip
 
 

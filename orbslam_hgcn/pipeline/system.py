@@ -62,6 +62,7 @@ from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.loop.closer import LoopCloser
 from orbslam_hgcn.map import Frame, KeyFrame, Map
+from orbslam_hgcn.map.atlas import Atlas
 from orbslam_hgcn.mapping.local_mapper import LocalMapper
 from orbslam_hgcn.pipeline.extraction import ExtractionProcess, warm_up_extractors
 from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
@@ -292,7 +293,10 @@ class System:
         self.vocabulary = vocabulary
         self.loop_closer = loop_closer
         self.relocalizer = relocalizer
-        self.map = Map(c.map)
+        # Maps: the active one in self.map; a new one is started when tracking stays lost,
+        # the others kept for relocalisation and merging (orbslam_hgcn.map.atlas).
+        self.atlas = Atlas(c.map)
+        self.map = self.atlas.active
         self.extractor = ORBExtractor(c.orb)
         n_init = max(1, int(round(c.orb.n_features * c.tracking.init_features_factor)))
         self.init_extractor = ORBExtractor(dataclasses.replace(c.orb, n_features=n_init))
@@ -312,8 +316,9 @@ class System:
                 self.loop_closer = LoopCloser(self.map, self.database, c.loop_closing, c.backend, vocabulary)
         self.tracker = Tracker(
             self.map, c.tracking, c.initializer, c.backend, vocabulary=vocabulary, mapping_idle=self._mapping_idle,
-            relocalizer=self.relocalizer,
+            relocalizer=self.relocalizer, atlas=self.atlas,
         )
+        self.atlas.merge_hooks.append(self.tracker.rescale_records)
         self.mapper = LocalMapper(self.map, c.local_mapping, c.backend, vocabulary=vocabulary)
         self.timings: dict[str, list[float]] = {
             "extraction": [], "tracking": [], "tracking_cpu": [], "frame": [], "lock_wait": [], "keyframe_wait": [],
@@ -325,7 +330,7 @@ class System:
         self.frame_started: list[float] = []
         self.events: list[dict[str, Any]] = []
         self.n_resets = 0
-        self._paced = False  # run() is taking frames at their camera's rate
+        self._resume_by: float | None = None  # see run(): the latest a keyframe may hold the tracker
         # Called as observer(system, record, result) after every frame of :meth:`run`
         # (visualisation, progress reporting); they must not change the map.
         self.observers: list[Callable[[System, FrameRecord, TrackResult], None]] = []
@@ -431,20 +436,21 @@ class System:
             with first(self.tracker.map.lock):
                 self.timings["lock_wait"].append(1000.0 * (time.perf_counter() - t1))
                 result = self.tracker.track(Frame(frame_id, timestamp, self.camera, kps))
-            if not result.reset:
+            map_changed = result.reset or result.new_map or result.switched_map
+            if not map_changed:
                 for kf in result.new_keyframes:
                     self._on_keyframe(kf)
         self.timings["extraction"].append(extraction_ms)
         if result.state == TrackingState.OK and not result.initialized:
             self.timings["tracking"].append(result.time_ms)
             self.timings["tracking_cpu"].append(result.cpu_ms)
-        if result.reset:
-            self._reset(frame_id, timestamp)
+        if map_changed:
+            self._map_changed(frame_id, timestamp, result)
         if result.initialized:
-            self.events.append({"frame": frame_id, "t": timestamp, "event": "initialized"})
+            self.events.append({"frame": frame_id, "t": timestamp, "event": "initialized", "map": self.map.map_id})
         if result.lost:
-            self.events.append({"frame": frame_id, "t": timestamp, "event": "lost"})
-        if result.reset:
+            self.events.append({"frame": frame_id, "t": timestamp, "event": "lost", "map": self.map.map_id})
+        if map_changed:
             for kf in result.new_keyframes:
                 self._on_keyframe(kf)
         # The frame's latency: from the start of its extraction to its pose. The waits
@@ -455,10 +461,12 @@ class System:
         self.frame_optimising.append(bool(optimising))
         if result.keyframe_starved and self.configs.threads.keyframe_wait_s > 0:
             self._map_starved_frame(result, stages)
-        elif result.new_keyframes and self._paced and self.configs.threads.sync_mapping_s > 0:
+        elif result.new_keyframes and self._resume_by is not None and self.configs.threads.sync_mapping_s > 0:
             # Local mapping finishes the keyframe before the next frame is tracked.
             t3 = time.perf_counter()
-            stages.wait_for_mapping(self.configs.threads.sync_mapping_s, done=True)
+            limit = min(self.configs.threads.sync_mapping_s, self._resume_by - t3)
+            if limit > 0:
+                stages.wait_for_mapping(limit, done=True)
             self.timings["mapping_sync"].append(1000.0 * (time.perf_counter() - t3))
         return result
 
@@ -497,14 +505,34 @@ class System:
             self._share_map()
         self.map = m
         self.mapper.reset(m)
-        for stage in (self.loop_closer, self.relocalizer):
-            if stage is not None and hasattr(stage, "reset"):
-                stage.reset(m)
+        if self.loop_closer is not None and hasattr(self.loop_closer, "reset"):
+            self.loop_closer.reset(m, keep_database=True)
+        if self.relocalizer is not None and hasattr(self.relocalizer, "reset"):
+            self.relocalizer.reset(m)
 
-    def _reset(self, frame_id: int, timestamp: float) -> None:
-        self.n_resets += 1
+    def install_atlas(self, atlas: Atlas, m: Map) -> None:
+        """Use ``atlas`` (a loaded one) instead of the system's own, ``m`` its active map;
+        before the first frame (then :meth:`use_map`)."""
+        if self.sequential is False and isinstance(self.atlas.lock, TrackingFirstLock):
+            atlas.lock = TrackingFirstLock()
+        atlas.set_active(m)
+        atlas.merge_hooks = [self.tracker.rescale_records]
+        self.atlas = atlas
+        self.tracker.atlas = atlas
+
+    def _map_changed(self, frame_id: int, timestamp: float, result: TrackResult) -> None:
+        """The tracker discarded its map, started a new one or relocalised into another:
+        the stages follow it to the active map (the keyframe database keeps every map's
+        keyframes, less those of a discarded map)."""
+        if result.reset:
+            self.n_resets += 1
         self.use_map(self.tracker.map)
-        self.events.append({"frame": frame_id, "t": timestamp, "event": "reset"})
+        if self.database is not None:
+            for k in self.database.keyframes():
+                if self.atlas.map_of(k) is None:
+                    self.database.erase(k)
+        event = "reset" if result.reset else "new_map" if result.new_map else "map_switched"
+        self.events.append({"frame": frame_id, "t": timestamp, "event": event, "map": self.map.map_id})
 
     # --- a whole sequence ----------------------------------------------------------------
     def run(self, sequence: Sequence, max_frames: int | None = None, progress: bool | None = None) -> RunSummary:
@@ -555,7 +583,10 @@ class System:
                     done += 1
                     bar.update(1)
                 t_frame = time.perf_counter()
-                self._paced = pacer.speed > 0
+                # A keyframe's mapping may hold the tracker (threads.sync_mapping_s), but not so
+                # long that the next frame would wait more than half the frame queue.
+                due = pacer.due(float(sequence.timestamps[i])) if i < n else None
+                self._resume_by = None if due is None else due + 0.5 * threads.frame_buffer_s
                 result = self.process(rec.image, rec.timestamp, rec.index, features)
                 if self.observers:
                     with self.map.lock:
@@ -592,22 +623,35 @@ class System:
         return RunSummary(done, interrupted, time.perf_counter() - t0)
 
     # --- results -------------------------------------------------------------------------
+    def output_map(self) -> Map:
+        """The map the trajectories are written from: the atlas's largest (ORB-SLAM3 saves
+        its largest map)."""
+        return self.atlas.largest()
+
     def keyframe_trajectory(self) -> Trajectory:
-        return keyframe_trajectory(self.map)
+        return keyframe_trajectory(self.output_map())
 
     def camera_trajectory(self) -> Trajectory:
-        return camera_trajectory(self.tracker.records, self.map, self.tracker.generation)
+        return camera_trajectory(self.tracker.records, self.output_map())
 
     def stats(self) -> dict[str, Any]:
         """Counts and per-stage timings (ms) of the run so far."""
-        counts = frame_counts(self.tracker.records, self.tracker.generation)
+        out_map = self.output_map()
+        counts = frame_counts(self.tracker.records, out_map, self.atlas)
         mt = self.mapper.timings
         opt = np.asarray(self.frame_optimising, dtype=bool)
         return {
             "frames": counts,
-            "keyframes": self.map.n_keyframes(),
-            "map_points": self.map.n_points(),
+            "keyframes": out_map.n_keyframes(),
+            "map_points": out_map.n_points(),
             "map_resets": self.n_resets,
+            "atlas": {
+                "maps": self.atlas.summary(),
+                "output_map": out_map.map_id,
+                "maps_started": sum(e["event"] == "new_map" for e in self.events) + 1,
+                "maps_discarded": self.atlas.n_dropped,
+                "merges": list(self.atlas.merges),
+            },
             "final_state": self.tracker.state.value,
             "threads": {
                 "sequential": self.sequential,

@@ -169,7 +169,9 @@ def relocalize(
     backend: BackendConfig | None = None,
     rng: np.random.Generator | None = None,
 ) -> RelocalizationResult:
-    """Relocalise ``frame`` (its BoW vectors set) against the map; the frame is not changed."""
+    """Relocalise ``frame`` (its BoW vectors set) against the map, or, in an atlas, against
+    any of its maps (the active map's candidates first); the frame is not changed. The
+    result's ``kf_id`` tells which map it landed in."""
     cfg = config or RelocalizationConfig()
     backend = backend or BackendConfig()
     rng = rng or np.random.default_rng(cfg.seed)
@@ -182,6 +184,8 @@ def relocalize(
             per_word=cfg.common_words_per_word,
         )  # fmt: skip
         cands = [c.kf_id for c in found if not m.keyframe(c.kf_id).bad]
+        # In an atlas the candidates of the active map are tried first, then the others'.
+        cands.sort(key=lambda k: not m.owns(k))
         tried, best = 0, 0
         for k in cands:
             kf = m.keyframe(k)

@@ -96,6 +96,8 @@ class TrackResult:
     initialized: bool = False
     lost: bool = False  # tracking was lost on this frame
     reset: bool = False  # the map was discarded on this frame (tracker.map is a new one)
+    new_map: bool = False  # a new map was started on this frame; the previous one is kept (atlas)
+    switched_map: bool = False  # relocalised into another map of the atlas, now the active one
     # A keyframe was due by the rules (keyframe_decision.keyframe_starved) but local mapping
     # was busy: the caller may let mapping catch up before the next frame.
     keyframe_starved: bool = False
@@ -104,11 +106,18 @@ class TrackResult:
 
 
 class Tracker:
-    """Monocular ORB-SLAM tracking over one :class:`Map`.
+    """Monocular ORB-SLAM tracking over one :class:`Map`, or over the active map of an
+    :class:`~orbslam_hgcn.map.atlas.Atlas`.
 
-    m: the map; vocabulary: optional (``transform(desc) -> (BowVector, FeatureVector)``),
-    used to match the reference keyframe by BoW; mapping_idle: tells whether local mapping
-    accepts keyframes (always True when stages run in order); relocalizer: optional.
+    m: the map (an atlas's active map when ``atlas`` is given); vocabulary: optional
+    (``transform(desc) -> (BowVector, FeatureVector)``), used to match the reference
+    keyframe by BoW; mapping_idle: tells whether local mapping accepts keyframes (always
+    True when stages run in order); relocalizer: optional.
+
+    With an atlas (ORB-SLAM3's, Campos et al., T-RO 2021): when tracking has been lost for
+    ``new_map_after_s`` of camera time and relocalisation keeps failing, a new map is
+    started and the lost one kept; relocalisation may land in any map, which becomes the
+    active one. A map lost with at most ``reset_max_keyframes`` keyframes is discarded.
     """
 
     def __init__(
@@ -122,7 +131,9 @@ class Tracker:
         relocalizer: Relocalizer | None = None,
         extractor: ORBExtractor | None = None,
         camera: PinholeCamera | None = None,
+        atlas: Any = None,
     ) -> None:
+        self.atlas = atlas
         self.config = config or TrackingConfig()
         self.backend = backend or BackendConfig()
         self.vocabulary = vocabulary
@@ -155,17 +166,45 @@ class Tracker:
         self.last_kf_frame_id = -1
         self.last_kf_timestamp = float("nan")
         self.last_reloc_frame_id = -1
+        self.lost_since = float("nan")  # camera time tracking was lost (nan: not lost)
         self.initializer.reset()
 
     def reset(self, m: Map | None = None) -> None:
-        """Forget the map (a new empty one unless given) and start initialising again."""
+        """Forget the map (a new empty one unless given) and start initialising again. In
+        an atlas the map is discarded and a new one started."""
         self.generation += 1
+        if m is None and self.atlas is not None:
+            self.atlas.drop(self.map)
+            m = self.atlas.new_map()
         self._bind(m if m is not None else Map(self.map.config))
+
+    def start_new_map(self) -> None:
+        """Keep the current map (inactive) and start initialising a new one (atlas only)."""
+        m = self.atlas.new_map()
+        self._bind(m)
+
+    def switch_map(self, m: Map) -> None:
+        """Make ``m`` (another map of the atlas) the active one, tracking state kept: the
+        current frame was relocalised against it."""
+        self.atlas.set_active(m)
+        self.map = m
+        self.local_map = LocalMap(m, self.config)
+        self.last_kf_frame_id = -1
+        self.last_kf_timestamp = float("nan")
+
+    def rescale_records(self, kf_ids: set[int], scale: float) -> None:
+        """A merge moved keyframes ``kf_ids`` by a similarity of ``scale``: the poses kept
+        relative to them (T_cr) take the new scale (an atlas merge hook)."""
+        for rec in self.records:
+            if rec.T_cr is not None and rec.ref_kf_id in kf_ids:
+                T = rec.T_cr.copy()
+                T[:3, 3] *= scale
+                rec.T_cr = T
 
     @property
     def can_recover(self) -> bool:
-        """False once tracking is lost with no way back (no relocaliser)."""
-        return self.state != TrackingState.LOST or self.relocalizer is not None
+        """False once tracking is lost with no way back (no relocaliser and no atlas)."""
+        return self.state != TrackingState.LOST or self.relocalizer is not None or self.atlas is not None
 
     # --- entry points ------------------------------------------------------------------
     def track_image(self, image: np.ndarray, timestamp: float) -> TrackResult:
@@ -203,6 +242,9 @@ class Tracker:
 
     # --- initialisation ----------------------------------------------------------------
     def _initialize(self, frame: Frame, grid: FeatureGrid) -> TrackResult:
+        back = self._relocalise_elsewhere(frame, grid)
+        if back is not None:
+            return back
         init = self.initializer.add_frame(frame, grid, self.map)
         if init is None:
             self._record(frame.id, frame.timestamp, None)
@@ -217,6 +259,47 @@ class Tracker:
         return TrackResult(
             frame, self.state, len(init.point_ids), [init.kf_first, init.kf_second], initialized=True
         )
+
+    def _relocalise_elsewhere(self, frame: Frame, grid: FeatureGrid) -> TrackResult | None:
+        """While a new map of an atlas has no keyframe yet: relocalise the frame against the
+        other maps, and on success go on in that map (the empty new one is dropped). None
+        when there is nothing to try or it fails (the frame then goes to initialisation)."""
+        atlas = self.atlas
+        if atlas is None or self.relocalizer is None or self.localization or self.map.n_keyframes() > 0:
+            return None
+        if not any(m.n_keyframes() for m in atlas.maps.values() if m is not self.map):
+            return None
+        self._compute_bow(frame)
+        if not self.relocalizer.relocalize(frame, grid):
+            return None
+        kf_id = int(self.relocalizer.last.kf_id)
+        other = atlas.map_of(kf_id)
+        if other is None or other is self.map:
+            return None
+        empty = self.map
+        self.switch_map(other)
+        self.ref_kf_id = kf_id
+        self.last_reloc_frame_id = frame.id
+        ok, n_in = self._track_local_map(frame, grid)
+        if not ok:  # back to initialising the new map, its initialiser untouched
+            self.atlas.set_active(empty)
+            self.map, self.local_map = empty, LocalMap(empty, self.config)
+            self.ref_kf_id = self.last_reloc_frame_id = -1
+            frame.clear_links()
+            frame.T_cw = None
+            return None
+        atlas.remove(empty)
+        self.initializer.reset()
+        log.warning("frame %d (t=%.3f): relocalised in map %d before the new map was made; going on there",
+                    frame.id, frame.timestamp, other.map_id)  # fmt: skip
+        self.state = TrackingState.OK
+        self.lost_since = float("nan")
+        self.velocity = None
+        discard_outliers(frame)
+        frame.ref_kf_id = self.ref_kf_id
+        self._record(frame.id, frame.timestamp, frame)
+        self.last_frame = frame
+        return TrackResult(frame, self.state, n_in, switched_map=True)
 
     def _on_initialized(self, frame: Frame, init: InitialMap) -> None:
         kf1, kf2 = init.kf_first, init.kf_second
@@ -257,12 +340,22 @@ class Tracker:
             if ok:
                 self.last_reloc_frame_id = frame.id
                 log.warning("frame %d (t=%.3f): relocalised", frame.id, frame.timestamp)
+        switched = False
+        if ok and not was_ok and self.atlas is not None:
+            other = self.atlas.map_of(int(self.relocalizer.last.kf_id))
+            if other is not None and other is not m:
+                log.warning("frame %d: relocalised in map %d, now the active map (map %d kept)",
+                            frame.id, other.map_id, m.map_id)  # fmt: skip
+                self.switch_map(other)
+                self.ref_kf_id = int(self.relocalizer.last.kf_id)
+                m, switched = other, True
         n_in = 0
         if ok:
             ok, n_in = self._track_local_map(frame, grid)
-        result = TrackResult(frame, self.state, n_in)
+        result = TrackResult(frame, self.state, n_in, switched_map=switched)
         if ok:
             self.state = TrackingState.OK
+            self.lost_since = float("nan")
             if self.last_frame is not None and self.last_frame.T_cw is not None:
                 self.velocity = orthonormalize(frame.T_cw @ inv_T(self.last_frame.T_cw))
                 self.velocity_dt = frame.timestamp - self.last_frame.timestamp
@@ -280,6 +373,7 @@ class Tracker:
             self._record(frame.id, frame.timestamp, None)
             if was_ok:
                 result.lost = True
+                self.lost_since = frame.timestamp
                 log.warning(
                     "frame %d (t=%.3f): tracking lost (%d inliers after the local map, %d keyframes in the map)",
                     frame.id, frame.timestamp, n_in, m.n_keyframes(),
@@ -290,7 +384,15 @@ class Tracker:
                 )
                 self.reset()
                 result.reset = True
-            elif was_ok and self.relocalizer is None:
+            elif (
+                self.atlas is not None and not self.localization
+                and not frame.timestamp - self.lost_since < cfg.new_map_after_s
+            ):  # fmt: skip
+                log.warning("frame %d (t=%.3f): lost for %.1f s; map %d kept, a new map is started",
+                            frame.id, frame.timestamp, frame.timestamp - self.lost_since, m.map_id)  # fmt: skip
+                self.start_new_map()
+                result.new_map = True
+            elif was_ok and self.relocalizer is None and self.atlas is None:
                 log.warning("no relocalisation available: the remaining frames are counted as lost")
         result.state = self.state
         return result

@@ -13,7 +13,9 @@ records for :class:`~orbslam_hgcn.viz.rerun_logger.RerunLogger`, on the ``frame`
   coloured by observation count or height, keyframe frustums, covisibility and loop edges),
   the estimated trajectory and the ground truth aligned to it;
 - loop closures as events on the timeline; after one, the corrected map and the trajectory
-  rebuilt from the corrected keyframes replace the old ones.
+  rebuilt from the corrected keyframes replace the old ones;
+- with an atlas, the maps that are not active, each in its own colour, and new active maps
+  and merges as events.
 
 It uses only the system's public attributes (``map``, ``tracker``, ``loop_closer``,
 ``camera``, ``camera_trajectory()``) and copies the map under its lock (``Map.lock``); it
@@ -115,6 +117,9 @@ class LiveViz:
         )
         self._generation: int | None = None
         self._n_loops = 0
+        self._n_merges = 0
+        self._active_map: int | None = None
+        self._n_maps = 0
         self._last_index: int | None = None
         self._last_call: float | None = None
         self._est = Rows(3, np.float64)  # tracked camera centres with ground truth, map frame
@@ -164,6 +169,7 @@ class LiveViz:
         tracker = system.tracker
         if tracker.generation != self._generation:
             self._new_map(tracker.generation)
+        self._log_atlas(system, index)
         if record.T_wc is not None:
             gt_c = np.asarray(record.T_wc, dtype=np.float64)[:3, 3]
             self._gt_by_stamp[float(record.timestamp)] = gt_c
@@ -205,6 +211,34 @@ class LiveViz:
             self._log_ate(index)
         if self.logger.last_map_frame == index:
             self._log_ground_truth(index)
+
+    def _log_atlas(self, system: Any, index: int) -> None:
+        """An atlas that changed (a new active map, a merge): events on the timeline, and
+        the inactive maps in their own colours."""
+        atlas = getattr(system, "atlas", None)
+        if atlas is None:
+            return
+        active = system.map.map_id
+        merges = atlas.merges[self._n_merges :]
+        self._n_merges += len(merges)
+        for mg in merges:
+            self.logger.log_event(index, f"maps merged: map {mg['merged_map']} into map {mg['active_map']} "
+                                  f"(keyframes {mg['kf_id']} <-> {mg['match_kf_id']}, scale {mg['scale']:.3f})")
+        changed = bool(merges) or active != self._active_map or len(atlas) != self._n_maps
+        if active != self._active_map and self._active_map is not None:
+            self.logger.log_event(index, f"map {active} is now the active map ({len(atlas)} maps)")
+            self._new_map(self._generation)
+        self._active_map, self._n_maps = active, len(atlas)
+        if changed:
+            with system.map.lock:
+                others = [
+                    (m.map_id, m.positions(m.point_ids()), np.array([kf.center for kf in m.keyframes()]).reshape(-1, 3))
+                    for m in atlas.maps.values()
+                    if m is not system.map
+                ]
+            self.logger.log_other_maps(others, index)
+            if merges:
+                self.logger.log_map(map_snapshot_of(system), index)
 
     def _new_map(self, generation: int) -> None:
         """A new map (the first, or after a reset): forget the trajectory of the old one."""

@@ -36,6 +36,7 @@ PLOT_MAP_POINTS = "plots/map_points"
 PLOT_ATE = "plots/ate"
 PLOT_LOOPS = "plots/loops"
 EVENTS = "events"
+OTHER_MAPS = "world/other_maps"  # the inactive maps of an atlas: OTHER_MAPS/map_<id>/{points,keyframes}
 
 # Numeric codes of tracking states for the time-series plot (higher is healthier, except
 # lost). ORB-SLAM's states plus the names a tracker is likely to use for them.

@@ -37,6 +37,8 @@ from orbslam_hgcn.viz.sinks import DEFAULT_PORT, attach_sink
 log = logging.getLogger(__name__)
 
 GREEN, RED, BLUE, ORANGE, GREY = (40, 220, 60), (230, 50, 50), (70, 140, 255), (255, 150, 0), (200, 200, 200)
+# Colours of the inactive maps of an atlas, by map id.
+MAP_PALETTE = ((200, 120, 255), (255, 200, 40), (0, 200, 200), (255, 110, 180), (150, 210, 90), (160, 120, 80))
 
 
 def _packed(rgb: tuple[int, ...], alpha: int = 255) -> np.ndarray:
@@ -149,6 +151,7 @@ class RerunLogger:
         self._kf_ids = np.zeros(0, dtype=np.int64)
         self._kf_centres = np.zeros((0, 3), dtype=np.float32)
         self._trajectory = Rows(3, np.float32)  # camera centres
+        self._other_maps: set[int] = set()
         self._closed = False
         self._log_static()
 
@@ -341,6 +344,28 @@ class RerunLogger:
             self.log_map(snapshot, frame_index)
         else:
             self._log_loop_edges(kf_ids, centres, edges)
+
+    def log_event(self, frame_index: int, text: str, level: str = "WARN") -> None:
+        """A text event on the timeline (a new map, a merge)."""
+        self._set_time(frame_index)
+        self._rec.log(ent.EVENTS, rr.TextLog(text, level=level))
+
+    def log_other_maps(self, maps: list[tuple[int, np.ndarray, np.ndarray]], frame_index: int | None = None) -> None:
+        """The inactive maps of an atlas, each in its own colour: (map id, (P, 3) points,
+        (K, 3) keyframe centres) per map; maps logged before and absent now are cleared."""
+        self._set_time(frame_index)
+        with self._lock:
+            shown, self._other_maps = self._other_maps, {int(i) for i, _, _ in maps}
+        for map_id in shown - self._other_maps:
+            self._rec.log(f"{ent.OTHER_MAPS}/map_{map_id}", rr.Clear(recursive=True))
+        for map_id, points, centres in maps:
+            colour = _packed(MAP_PALETTE[int(map_id) % len(MAP_PALETTE)])
+            path = f"{ent.OTHER_MAPS}/map_{int(map_id)}"
+            pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+            pts = pts[np.isfinite(pts).all(axis=1)]
+            self._rec.log(f"{path}/points", rr.Points3D(pts, colors=colour, radii=MAP_POINT_RADIUS))
+            self._rec.log(f"{path}/keyframes", rr.Points3D(np.asarray(centres, np.float32).reshape(-1, 3),
+                                                           colors=colour, radii=MEDIUM))  # fmt: skip
 
     def log_trajectory(self, positions_w: np.ndarray, frame_index: int | None = None) -> None:
         """Replace the estimated trajectory, (M, 3) camera centres (e.g. after loop correction);
