@@ -212,6 +212,16 @@ def format_report(report: RunReport) -> list[str]:
             **t["local_mapping_per_keyframe"]
         ),
     ]
+    atlas = s.get("atlas", {})
+    if len(atlas.get("maps", [])) > 1 or atlas.get("merges") or atlas.get("maps_started", 1) > 1:
+        lines.append(
+            f"maps: {atlas.get('maps_started', 1)} started, {len(atlas.get('merges', []))} merge(s), "
+            f"{atlas.get('maps_discarded', 0)} discarded, {len(atlas.get('maps', []))} left; trajectories from map "
+            f"{atlas.get('output_map')}, {f.get('other_maps', 0)} frames tracked in the other maps"
+        )
+    for mg in atlas.get("merges", []):
+        lines.append(f"maps merged: map {mg['merged_map']} into map {mg['active_map']} at frame {mg['frame_id']} "
+                     f"(with frame {mg['match_frame_id']}), scale {mg['scale']:.3f}, {mg['n_matches']} matched points")
     for ev in s.get("loop_closing", {}).get("loops", []):
         lines.append(f"loop closed: keyframe {ev['kf_id']} (frame {ev['frame_id']}) with keyframe {ev['loop_kf_id']} "
                      f"(frame {ev['loop_frame_id']}), scale {ev['scale']:.3f}, {ev['n_matches']} matched points")
