@@ -7,6 +7,7 @@ blacked out to make tracking fail.
 """
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -114,7 +115,7 @@ def test_lost_tracking_starts_a_new_map_that_is_merged_on_the_revisit(loop450, c
     assert cam["rmse_m"] < 0.01, cam
 
 
-def test_before_the_merge_the_frames_of_the_other_map_are_counted_apart(loop450, vocab):
+def test_before_the_merge_the_frames_of_the_other_map_are_counted_apart(loop450, vocab, tmp_path):
     """The same run stopped before the loop comes round: two maps, the trajectories come
     from the larger, the frames tracked in the other are counted as such."""
     seq = _cut_sequence(loop450)
@@ -130,6 +131,15 @@ def test_before_the_merge_the_frames_of_the_other_map_are_counted_apart(loop450,
     assert len(system.camera_trajectory()) == f["tracked"]
     for m in system.atlas.maps.values():
         assert check_invariants(m) == []
+    # The other map's trajectories are written beside the main files.
+    from orbslam_hgcn.trajectory import read_tum
+
+    (other,) = [m for m in system.atlas.maps.values() if m is not out]
+    paths = system.save(tmp_path)
+    stats = json.loads(paths["stats"].read_text())
+    files = stats["atlas"]["map_files"][str(other.map_id)]
+    assert len(read_tum(files["keyframes"])) == other.n_keyframes()
+    assert len(read_tum(files["camera"])) == f["other_maps"]
 
 
 def test_relocalisation_lands_in_the_old_map_before_a_new_one_is_made(loop450, vocab):
@@ -172,8 +182,6 @@ def test_atlas_file_round_trip(loop450, vocab, tmp_path):
 
 def test_a_version_1_map_file_reads_as_an_atlas_of_one_map(loop450, vocab, tmp_path):
     """Files written before the atlas (format version 1: one map, no map arrays) still read."""
-    import json
-
     system = System(loop450.camera, Configs(), vocabulary=vocab, sequential=True)
     system.run(loop450, 60, progress=False)
     arrays = read_npz(save_system_map(tmp_path / "one.npz", system, "hgcn"), "map", ValueError)

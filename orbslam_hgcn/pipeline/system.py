@@ -76,7 +76,7 @@ from orbslam_hgcn.pipeline.results import (
 )
 from orbslam_hgcn.tracking.relocalization import Relocalizer
 from orbslam_hgcn.tracking.tracker import Tracker, TrackingState, TrackResult
-from orbslam_hgcn.trajectory import Trajectory
+from orbslam_hgcn.trajectory import Trajectory, write_tum
 from orbslam_hgcn.vocabulary.database import KeyframeDatabase
 
 log = logging.getLogger(__name__)
@@ -684,8 +684,23 @@ class System:
         }
 
     def save(self, out: str | Path, extra: dict[str, Any] | None = None) -> dict[str, Path]:
-        """Write KeyFrameTrajectory.txt, CameraTrajectory.txt and stats.json into ``out``."""
+        """Write KeyFrameTrajectory.txt, CameraTrajectory.txt (the output map) and
+        stats.json into ``out``; with several maps, each other map's trajectories into
+        ``out/maps/`` (KeyFrameTrajectory_map<id>.txt, CameraTrajectory_map<id>.txt), listed
+        in stats.json under ``atlas.map_files``."""
         stats = self.stats()
         if extra:
             stats.update(extra)
+        out_map = self.output_map()
+        others = [m for m in self.atlas.maps.values() if m is not out_map and m.n_keyframes()]
+        files: dict[str, dict[str, str]] = {}
+        for m in others:
+            folder = Path(out) / "maps"
+            folder.mkdir(parents=True, exist_ok=True)
+            kf_path = folder / f"KeyFrameTrajectory_map{m.map_id}.txt"
+            cam_path = folder / f"CameraTrajectory_map{m.map_id}.txt"
+            write_tum(kf_path, keyframe_trajectory(m))
+            write_tum(cam_path, camera_trajectory(self.tracker.records, m))
+            files[str(m.map_id)] = {"keyframes": str(kf_path), "camera": str(cam_path)}
+        stats["atlas"]["map_files"] = files
         return write_outputs(out, self.keyframe_trajectory(), self.camera_trajectory(), stats)
