@@ -133,6 +133,7 @@ def run_once(seq: Sequence, vocab: str, sequential: bool, disturbed: tuple[int, 
         "cam_ate": trajectory_ate(seq.ground_truth, system.camera_trajectory()),
         "longest_gap_s": max(gaps, default=0) / fps,
         "merges": [{**m, "truth": merge_truth(seq, m)} for m in st["atlas"]["merges"]],
+        "loops": len(st["loop_closing"].get("loops", [])),
     }  # fmt: skip
     if disturbed is not None:
         lo, hi = disturbed
@@ -145,7 +146,8 @@ def run_once(seq: Sequence, vocab: str, sequential: bool, disturbed: tuple[int, 
 
 def describe(r: dict) -> str:
     ev = ", ".join(f"{e['event']} {e['frame']} (map {e.get('map')})" for e in r["events"])
-    lines = [f"  {r['vocab']}/{r['mode']}: {ev}; {r['maps_at_end']} map(s) at the end, {r['wall_s']:.0f} s"]
+    lines = [f"  {r['vocab']}/{r['mode']}: {ev}; {r['maps_at_end']} map(s) at the end, {r['loops']} loop(s) closed, "
+             f"{r['wall_s']:.0f} s"]
     for m in r["merges"]:
         d, a = m["truth"]
         lines.append(f"    merge at frame {m['frame_id']} with frame {m['match_frame_id']}: "
