@@ -6,7 +6,7 @@ Two sources of data:
   (different scene seeds for train and test); the test folder's ``loop_gt.npy`` is the
   ground truth (or pass ``--gt``);
 * by default, a textured-strip world: the camera travels along a long procedural mural
-  (``orbslam_hgcn.datasets.synthetic_textures``), each image a perspective view of a
+  (``orbslam_hgcn.synth.textures``), each image a perspective view of a
   640-pixel window with jittered viewpoint, noise and exposure; the test route passes the
   mural once and then revisits its first part; training uses another mural. Two images
   show the same place when their windows overlap by at least half.
@@ -59,7 +59,7 @@ HEIGHT = 480
 
 def mural(seed: int, length: int) -> np.ndarray:
     """(HEIGHT, length) uint8 grayscale procedural mural (print and wall styles alternating)."""
-    from orbslam_hgcn.datasets.synthetic_textures import STYLES, make_texture
+    from orbslam_hgcn.synth.textures import STYLES, make_texture
 
     rng = np.random.default_rng(seed)
     parts, done = [], 0

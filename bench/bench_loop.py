@@ -57,7 +57,7 @@ import numpy as np
 
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.datasets.base import FrameRecord, Sequence
-from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 from orbslam_hgcn.loop.synthetic import circle_ground_truth
 from orbslam_hgcn.pipeline.run import trajectory_ate
 from orbslam_hgcn.pipeline.system import Configs, System

@@ -1,7 +1,7 @@
 """Place recognition with the two shipped vocabularies on synthetic sequences with revisits.
 
 Sequences (default ``--trajectory twolap``): the camera walks twice round the desk of a
-synthetic office (``orbslam_hgcn.datasets.synthetic``; scene seeds 0, 1, 2 by default, not
+synthetic office (``orbslam_hgcn.synth.sequence``; scene seeds 0, 1, 2 by default, not
 training scenes of the shipped vocabularies, which use 1001..), 40 s per lap at 10 fps,
 with sensor noise and exposure drift. The laps are two generated loops (``LoopPath``) with
 different random seeds: different start points, speeds, heights and gaze wander, so the
@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from orbslam_hgcn.datasets import open_sequence
-from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
-from orbslam_hgcn.datasets.synthetic_trajectory import DeskSpec, LoopPath
+from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
+from orbslam_hgcn.synth.trajectory import DeskSpec, LoopPath
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.trajectory import Trajectory, write_tum
 from orbslam_hgcn.vocabulary import KeyframeDatabase, load_vocabulary

@@ -21,7 +21,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from orbslam_hgcn.datasets.synthetic import (  # noqa: E402
+from orbslam_hgcn.synth.sequence import (  # noqa: E402
     PRESETS,
     REF_DEPTH,
     CameraEffects,
@@ -32,8 +32,8 @@ from orbslam_hgcn.datasets.synthetic import (  # noqa: E402
     street_options,
     synth_options,
 )
-from orbslam_hgcn.datasets.synthetic_degrade import Degradations  # noqa: E402
-from orbslam_hgcn.datasets.synthetic_output import PNG_PARAMS  # noqa: E402
+from orbslam_hgcn.synth.degrade import Degradations  # noqa: E402
+from orbslam_hgcn.synth.output import PNG_PARAMS  # noqa: E402
 
 TUM_GT = Path(__file__).resolve().parents[1].parent / "shared/data/tum_fr3_long_office_household_sample/groundtruth.txt"
 

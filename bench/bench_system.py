@@ -269,7 +269,7 @@ def report(r: dict) -> None:
 
 
 def ensure_sequence(name: str, cache: Path) -> Path:
-    from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+    from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 
     options = SynthOptions(trajectory="replay", gt=str(FR3_GT)) if name == "fr3_replay" else SynthOptions()
     out = cache / name

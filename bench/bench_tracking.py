@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 from orbslam_hgcn.datasets import open_sequence
-from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 from orbslam_hgcn.pipeline.run import trajectory_ate
 from orbslam_hgcn.pipeline.system import Configs, System
 

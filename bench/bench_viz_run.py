@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 from orbslam_hgcn.pipeline.run import run_dataset
 
 TARGET = 0.10  # logging may add at most 10% to the run time

@@ -279,7 +279,7 @@ def _add_synth(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_synth(args: argparse.Namespace) -> int:
-    from orbslam_hgcn.datasets.synthetic import render_sequence, synth_options
+    from orbslam_hgcn.synth.sequence import render_sequence, synth_options
 
     given = {
         "scene": args.scene, "layout": args.layout, "kitti_sequence": args.sequence, "trajectory": args.trajectory,

@@ -37,7 +37,7 @@ def kitti_sample() -> Path:
 def synth_replay_100(tmp_path_factory) -> Path:
     """The first 100 frames of the real fr3 long-office camera path replayed in a synthetic
     room (rendered once per test session)."""
-    from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+    from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 
     gt = TUM_SAMPLE / "groundtruth.txt"
     if not gt.is_file():

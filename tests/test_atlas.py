@@ -28,7 +28,7 @@ CUT = (75, 135)  # 2 s of black frames in the first half of the lap
 
 @pytest.fixture(scope="module")
 def loop450(tmp_path_factory):
-    from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+    from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 
     out = tmp_path_factory.mktemp("loop450")
     return open_sequence("tum", render_sequence(out, SynthOptions(frames=450), progress=False))

@@ -9,7 +9,7 @@ import pytest
 
 from orbslam_hgcn.cli import main
 from orbslam_hgcn.datasets import open_sequence
-from orbslam_hgcn.datasets.synthetic import (
+from orbslam_hgcn.synth.sequence import (
     KITTI_CAMERA,
     SynthOptions,
     build_sequence,
@@ -19,10 +19,10 @@ from orbslam_hgcn.datasets.synthetic import (
     street_options,
     synth_options,
 )
-from orbslam_hgcn.datasets.synthetic_degrade import Degradations, ExposureSteps, FogSegments, jpeg, vignette_map
-from orbslam_hgcn.datasets.synthetic_render import SceneRenderer
-from orbslam_hgcn.datasets.synthetic_scene import Scene, face, raycast
-from orbslam_hgcn.datasets.synthetic_trajectory import look_at
+from orbslam_hgcn.synth.degrade import Degradations, ExposureSteps, FogSegments, jpeg, vignette_map
+from orbslam_hgcn.synth.render import SceneRenderer
+from orbslam_hgcn.synth.scene import Scene, face, raycast
+from orbslam_hgcn.synth.trajectory import look_at
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import inv_T
 

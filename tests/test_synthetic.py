@@ -8,10 +8,10 @@ import pytest
 
 from orbslam_hgcn.cli import main
 from orbslam_hgcn.config import load_camera
-from orbslam_hgcn.datasets.synthetic import CameraEffects, SynthOptions, build_sequence, render_frame, render_sequence
-from orbslam_hgcn.datasets.synthetic_render import SceneRenderer, surface_texture
-from orbslam_hgcn.datasets.synthetic_scene import Scene, box_quads, face, raycast
-from orbslam_hgcn.datasets.synthetic_trajectory import (
+from orbslam_hgcn.synth.sequence import CameraEffects, SynthOptions, build_sequence, render_frame, render_sequence
+from orbslam_hgcn.synth.render import SceneRenderer, surface_texture
+from orbslam_hgcn.synth.scene import Scene, box_quads, face, raycast
+from orbslam_hgcn.synth.trajectory import (
     LoopPath,
     ReplayPath,
     axes_convergence,
@@ -20,7 +20,7 @@ from orbslam_hgcn.datasets.synthetic_trajectory import (
     look_at,
     loop_ground_truth,
 )
-from orbslam_hgcn.datasets.synthetic_layout import DeskSpec
+from orbslam_hgcn.synth.layout import DeskSpec
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import rotation_angle_deg
 from orbslam_hgcn.trajectory import read_tum

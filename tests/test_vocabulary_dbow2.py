@@ -313,7 +313,7 @@ def test_export_refuses_what_dbow2_cannot_hold(tmp_path):
 def synth40(tmp_path_factory):
     """40 frames of the real fr3 camera path replayed in a synthetic room (initialises at
     about frame 22)."""
-    from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+    from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 
     gt = vf.SHARED / "tum_fr3_long_office_household_sample" / "groundtruth.txt"
     if not gt.is_file():

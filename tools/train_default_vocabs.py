@@ -1,6 +1,6 @@
 """Build the shipped default vocabularies (orbslam_hgcn/data/vocab_{orb,hgcn}_default.npz).
 
-Training imagery: synthetic office scenes rendered by ``orbslam_hgcn.datasets.synthetic``
+Training imagery: synthetic office scenes rendered by ``orbslam_hgcn.synth.sequence``
 with scene (and texture) seeds 1001..1000+S, far from the seeds evaluation sequences use
 (0 and small numbers), each seen along one generated loop round its desk, sampled sparsely
 (default 60 frames per loop) so the images cover the whole room. No TUM, EuRoC or other
@@ -26,7 +26,7 @@ from pathlib import Path
 
 
 from orbslam_hgcn.config import HgcnTrainConfig, TreeTrainConfig
-from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 from orbslam_hgcn.vocabulary.base import DEFAULT_FILES
 from orbslam_hgcn.vocabulary.tracks import build_tracks
 from orbslam_hgcn.vocabulary.train import extract_descriptors, open_image_source, select_images, train_vocabulary
@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     cache = args.work_dir / f"descriptors_{args.scenes}x{args.frames}_{args.features}.npz"
     data = extract_descriptors(sources, pairs, args.features, cache)
     desc, image_ids = data.desc, data.image_ids
-    trained_on = (f"synthetic office scenes (orbslam_hgcn.datasets.synthetic, loop trajectory, noise 2, "
+    trained_on = (f"synthetic office scenes (orbslam_hgcn.synth.sequence, loop trajectory, noise 2, "
                   f"exposure drift 0.1), scene/texture seeds {FIRST_SCENE_SEED}..{FIRST_SCENE_SEED + args.scenes - 1}, "
                   f"{args.frames} frames each; no evaluation imagery")
     log.info("%d descriptors from %d images", len(desc), len(pairs))

@@ -33,7 +33,7 @@ def demo_sequence(cache: str | Path | None = None, frames: int | None = None, pr
     """The demo sequence, rendered on first use: ``CACHE/loop_default`` (900 frames), or
     ``CACHE/loop_<N>frames`` for a loop of ``frames`` frames (300 or more make a full lap;
     fewer are the start of a 10 s lap)."""
-    from orbslam_hgcn.datasets.synthetic import SynthOptions, render_sequence
+    from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 
     if frames is not None and frames < 1:
         raise ConfigError(f"--frames must be at least 1, found {frames}")

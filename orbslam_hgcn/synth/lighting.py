@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from orbslam_hgcn.datasets.synthetic_scene import Quad, Scene
+from orbslam_hgcn.synth.scene import Quad, Scene
 
 AO_DEPTH = 0.45  # darkening right at a contact line
 AO_RANGE_M = 0.06  # e-folding distance of the contact darkening

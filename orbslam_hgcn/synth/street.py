@@ -14,7 +14,7 @@ behind. A building closes the far end of the route. Every object keeps clear of 
 
 Scene frame: metres, z up, ground at z = 0; the route starts at the origin heading +x.
 Camera frames follow OpenCV: x right, y down, z forward. Texturing, lighting and the sky
-are in ``synthetic_street_textures``.
+are in ``street_textures``.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from orbslam_hgcn.datasets.synthetic_layout import _footprint_clear, _overlap
-from orbslam_hgcn.datasets.synthetic_scene import Quad, Scene, box_quads, face, rot_z
+from orbslam_hgcn.synth.layout import _footprint_clear, _overlap
+from orbslam_hgcn.synth.scene import Quad, Scene, box_quads, face, rot_z
 
 log = logging.getLogger(__name__)
 

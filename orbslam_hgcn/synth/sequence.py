@@ -20,11 +20,11 @@ reads)::
     out_dir/poses/NN.txt                          3x4 T_wc rows, the first camera as world
     out_dir/camera.yaml, scene.json, loop_gt.npy  as above
 
-Scenes: an office room (synthetic_layout, from the scene seed) seen along a generated loop
+Scenes: an office room (:mod:`.layout`, from the scene seed) seen along a generated loop
 round the desk (also from the scene seed) or a replayed TUM trajectory
-(synthetic_trajectory); or a street (synthetic_street) driven forward through corners,
-with a sky. Both are rendered exactly (synthetic_render), with textures from the texture
-seed. Camera effects, in order: fog (synthetic_degrade), motion blur (the average of
+(:mod:`.trajectory`); or a street (:mod:`.street`) driven forward through corners,
+with a sky. Both are rendered exactly (:mod:`.render`), with textures from the texture
+seed. Camera effects, in order: fog (:mod:`.degrade`), motion blur (the average of
 sub-frame renders spread over the shutter time, or each pixel blurred along its own
 motion), vignetting, auto-exposure steps, exposure drift (slow gain and offset changes),
 Gaussian sensor noise, rounding, JPEG compression. The same options give byte-identical
@@ -45,13 +45,13 @@ import numpy as np
 from tqdm import tqdm
 
 from orbslam_hgcn.config import save_camera
-from orbslam_hgcn.datasets.synthetic_degrade import Degradations, flow_blur
-from orbslam_hgcn.datasets.synthetic_output import PNG_PARAMS, TumWriter, make_writer, writer_class  # noqa: F401
-from orbslam_hgcn.datasets.synthetic_render import SceneRenderer
-from orbslam_hgcn.datasets.synthetic_layout import DeskSpec, build_scene
-from orbslam_hgcn.datasets.synthetic_trajectory import LoopPath, ReplayPath, fit_scene_to_trajectory, loop_ground_truth
 from orbslam_hgcn.errors import ConfigError, DatasetError
 from orbslam_hgcn.geometry.camera import PinholeCamera
+from orbslam_hgcn.synth.degrade import Degradations, flow_blur
+from orbslam_hgcn.synth.layout import DeskSpec, build_scene
+from orbslam_hgcn.synth.output import PNG_PARAMS, TumWriter, make_writer, writer_class  # noqa: F401
+from orbslam_hgcn.synth.render import SceneRenderer
+from orbslam_hgcn.synth.trajectory import LoopPath, ReplayPath, fit_scene_to_trajectory, loop_ground_truth
 from orbslam_hgcn.trajectory import read_tum
 
 log = logging.getLogger(__name__)
@@ -193,7 +193,7 @@ def build_sequence(options: SynthOptions):
     JSON-able trajectory description).
     """
     if options.scene == "street":
-        from orbslam_hgcn.datasets.synthetic_street import StreetSpec, build_street
+        from orbslam_hgcn.synth.street import StreetSpec, build_street
 
         n = _frame_count(options, STREET_DURATION)
         spec = StreetSpec()
@@ -275,9 +275,9 @@ def make_renderer(scene, options: SynthOptions, progress: bool = False):
     """The renderer of a sequence's scene (textures built here): ``render(T_wc)``, ``camera``."""
     texture_seed = options.scene_seed if options.texture_seed is None else options.texture_seed
     if options.scene == "street":
-        from orbslam_hgcn.datasets.synthetic_street_textures import SkyBackground, StreetTextures
+        from orbslam_hgcn.synth.street_textures import SkyBackground, StreetTextures
 
-        from orbslam_hgcn.datasets.synthetic_render_lod import LodSceneRenderer
+        from orbslam_hgcn.synth.render_lod import LodSceneRenderer
 
         textures = StreetTextures(scene, texture_seed, options.texel_scale)
         renderer = LodSceneRenderer(scene, options.camera, textures, tile_m=STREET_TILE_M)
@@ -294,7 +294,7 @@ def render_frame(renderer: SceneRenderer, poses, t: float, options: SynthOptions
     between neighbours, at most 15) are rendered across the shutter time and averaged; the
     inverse depth is that of the middle sub-frame (the ground-truth pose). In the "flow"
     mode, the middle render is blurred along each pixel's own motion instead
-    (``synthetic_degrade.flow_blur``). ``post(img, inv_depth)``, when given, is applied to
+    (``degrade.flow_blur``). ``post(img, inv_depth)``, when given, is applied to
     every render before averaging (fog).
     """
     T = poses(np.array([t]))[0]

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from orbslam_hgcn.datasets.synthetic_scene import TEXEL, UP, Quad, Scene, box_quads, face, rot_x, rot_z, room_quads
+from orbslam_hgcn.synth.scene import TEXEL, UP, Quad, Scene, box_quads, face, rot_x, rot_z, room_quads
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
-"""Textures, sunlight and sky of the synthetic street scenes (``synthetic_street``).
+"""Textures, sunlight and sky of the synthetic street scenes (``street``).
 
-Every surface starts from the procedural textures of ``synthetic_textures`` (value noise,
+Every surface starts from the procedural textures of ``textures`` (value noise,
 dead leaves, marks) in a street style, with what makes it a street on top:
 
 * ground: asphalt, kerb stones, paving and yards chosen per texel by the distance to the
@@ -24,9 +24,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from orbslam_hgcn.datasets.synthetic_render import BLOCK, _texture_size
-from orbslam_hgcn.datasets.synthetic_street import StreetScene
-from orbslam_hgcn.datasets.synthetic_textures import TextureStyle, _stamp, make_texture, value_noise
+from orbslam_hgcn.synth.render import BLOCK, _texture_size
+from orbslam_hgcn.synth.street import StreetScene
+from orbslam_hgcn.synth.textures import TextureStyle, _stamp, make_texture, value_noise
 from orbslam_hgcn.geometry.camera import PinholeCamera
 
 AMBIENT = 0.55  # light of a face in shadow, relative to the sunlit ground

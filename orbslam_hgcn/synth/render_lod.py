@@ -24,8 +24,8 @@ import logging
 import cv2
 import numpy as np
 
-from orbslam_hgcn.datasets.synthetic_lighting import contact_edges, shading
-from orbslam_hgcn.datasets.synthetic_render import (
+from orbslam_hgcn.synth.lighting import contact_edges, shading
+from orbslam_hgcn.synth.render import (
     BLOCK,
     TILE_M,
     SceneRenderer,
@@ -34,7 +34,7 @@ from orbslam_hgcn.datasets.synthetic_render import (
     _tile_geometry,
     _tile_levels,
 )
-from orbslam_hgcn.datasets.synthetic_scene import Scene
+from orbslam_hgcn.synth.scene import Scene
 from orbslam_hgcn.geometry.camera import PinholeCamera
 
 log = logging.getLogger(__name__)

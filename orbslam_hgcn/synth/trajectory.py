@@ -19,8 +19,8 @@ import logging
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from orbslam_hgcn.datasets.synthetic_layout import DeskSpec, build_scene
-from orbslam_hgcn.datasets.synthetic_scene import Scene
+from orbslam_hgcn.synth.layout import DeskSpec, build_scene
+from orbslam_hgcn.synth.scene import Scene
 from orbslam_hgcn.errors import DatasetError
 from orbslam_hgcn.trajectory import Trajectory
 

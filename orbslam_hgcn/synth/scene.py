@@ -2,7 +2,7 @@
 
 A scene lives in its own frame (metres, z up, floor at z = 0) and is placed in the world
 by ``T_world_scene``. Every surface is a one-sided :class:`Quad`; closed objects are boxes
-of five or six quads. The office layout itself is built in ``synthetic_layout``.
+of five or six quads. The office layout itself is built in ``layout``.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ class Quad:
     size_u: float
     size_v: float
     texel: float  # target texel size in metres
-    style: str  # a key of synthetic_textures.STYLES
+    style: str  # a key of textures.STYLES
     label: str  # the object the face belongs to
 
     @cached_property

@@ -7,7 +7,7 @@ screen bounding box, computing its inverse depth analytically, and compositing b
 front with a z-test (nearer surfaces win; anti-aliased edges blend over what lies behind).
 
 Textures: each surface gets its own procedural texture (sizes rounded to multiples of 16
-texels), lit once (synthetic_lighting), and cut into tiles of at most 512 texels (1.5 m).
+texels), lit once (lighting), and cut into tiles of at most 512 texels (1.5 m).
 Each tile keeps a 32-texel margin (its neighbours' texels inside the surface, opaque for
 16 texels so that neighbouring tiles overlap without seams; alpha 0 outside the surface
 and on the outer ring) and a mip pyramid of 2x2 box-filtered levels. The level drawn is
@@ -30,9 +30,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from orbslam_hgcn.datasets.synthetic_lighting import contact_edges, shading
-from orbslam_hgcn.datasets.synthetic_scene import Quad, Scene
-from orbslam_hgcn.datasets.synthetic_textures import STYLES, make_texture, tile_patch
+from orbslam_hgcn.synth.lighting import contact_edges, shading
+from orbslam_hgcn.synth.scene import Quad, Scene
+from orbslam_hgcn.synth.textures import STYLES, make_texture, tile_patch
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import inv_T
 
