@@ -17,20 +17,25 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
 from orbslam_hgcn.backend.bundle_adjustment import local_bundle_adjustment
 from orbslam_hgcn.backend.pose_graph import optimize_essential_graph, relative_sim3
 from orbslam_hgcn.backend.pose_only import optimize_pose, optimize_pose_gtsam
-from orbslam_hgcn.backend.synthetic import SCALE_FACTOR, N_LEVELS, drifted_loop, make_scene, perturb_pose
 from orbslam_hgcn.config import BackendConfig
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.map import Frame, Map
 from orbslam_hgcn.map.window import apply_window, local_window
+
+# Known-answer problems shared with the tests (tests/*_fixtures.py).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from backend_fixtures import SCALE_FACTOR, N_LEVELS, drifted_loop, make_scene, perturb_pose  # noqa: E402
 
 log = logging.getLogger(__name__)
 

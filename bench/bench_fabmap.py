@@ -12,13 +12,18 @@ an index of ``--places`` places.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from orbslam_hgcn.placerec.chow_liu import learn_chow_liu_tree
 from orbslam_hgcn.placerec.fabmap import FabMap2
-from orbslam_hgcn.placerec.simulate import random_tree_model, sample_tree
+
+# Known-answer problems shared with the tests (tests/*_fixtures.py).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from placerec_fixtures import random_tree_model, sample_tree  # noqa: E402
 
 
 def main() -> None:

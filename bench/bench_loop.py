@@ -58,12 +58,15 @@ import numpy as np
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.datasets.base import FrameRecord, Sequence
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
-from orbslam_hgcn.loop.synthetic import circle_ground_truth
 from orbslam_hgcn.pipeline.run import trajectory_ate
 from orbslam_hgcn.pipeline.system import Configs, System
 from orbslam_hgcn.tracking.tracker import TrackingState
 from orbslam_hgcn.trajectory import Trajectory
 from orbslam_hgcn.vocabulary import load_vocabulary
+
+# Known-answer problems shared with the tests (tests/*_fixtures.py).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from loop_fixtures import circle_ground_truth  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FR3_GT = REPO.parent / "shared" / "data" / "tum_fr3_long_office_household_sample" / "groundtruth.txt"

@@ -20,8 +20,9 @@ from orbslam_hgcn.backend.pose_graph import (
     to_gtsam,
 )
 from orbslam_hgcn.backend.pose_only import optimize_pose, optimize_pose_gtsam, se3_exp
-from orbslam_hgcn.backend.synthetic import drifted_loop, make_scene, perturb_pose
 from orbslam_hgcn.geometry.se3 import inv_S, inv_T, make_T, rotation_angle_deg, transform_points
+
+from backend_fixtures import drifted_loop, make_scene, perturb_pose
 
 
 def _pose_err(A, B):

@@ -19,7 +19,11 @@ from orbslam_hgcn.loop.detector import ConsistencyFilter
 from orbslam_hgcn.loop.projection import search_by_sim3
 from orbslam_hgcn.loop.sim3_check import LoopMatch, compute_sim3, loop_neighbourhood
 from orbslam_hgcn.loop.sim3_refine import optimize_sim3, sim3_errors
-from orbslam_hgcn.loop.synthetic import (
+from orbslam_hgcn.map import Frame, Map, check_invariants
+from orbslam_hgcn.map.window import global_window
+from orbslam_hgcn.vocabulary.database import KeyframeDatabase
+
+from loop_fixtures import (
     RingScene,
     bow_of,
     build_ring_map,
@@ -30,9 +34,6 @@ from orbslam_hgcn.loop.synthetic import (
     true_loop_matches,
     true_loop_similarity,
 )
-from orbslam_hgcn.map import Frame, Map, check_invariants
-from orbslam_hgcn.map.window import global_window
-from orbslam_hgcn.vocabulary.database import KeyframeDatabase
 
 
 def _sim3(scale: float, rotvec_deg, t) -> np.ndarray:

@@ -17,8 +17,9 @@ from orbslam_hgcn.placerec.chow_liu import (
 )
 from orbslam_hgcn.placerec.fabmap import FabMap2
 from orbslam_hgcn.placerec.sequence import motion_prior, run_fabmap
-from orbslam_hgcn.placerec.simulate import WordWorld, random_tree_model, route_sequence, sample_tree
 from orbslam_hgcn.placerec.words import occurrence_matrix
+
+from placerec_fixtures import WordWorld, random_tree_model, route_sequence, sample_tree
 
 
 def test_chow_liu_recovers_known_tree():

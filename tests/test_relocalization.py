@@ -8,12 +8,13 @@ import pytest
 from orbslam_hgcn.features.grid import FeatureGrid
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.geometry.se3 import rotation_angle_deg
-from orbslam_hgcn.loop.synthetic import SCALE_FACTORS, RingScene, bow_of, build_ring_map, frame_at, ring_pose
 from orbslam_hgcn.map import Frame
 from orbslam_hgcn.tracking.relocalization import Relocalizer, relocalize
 from orbslam_hgcn.tracking.tracker import Tracker, TrackingState
 from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector
 from orbslam_hgcn.vocabulary.database import KeyframeDatabase
+
+from loop_fixtures import SCALE_FACTORS, RingScene, bow_of, build_ring_map, frame_at, ring_pose
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,6 @@ import pytest
 from orbslam_hgcn.backend.bundle_adjustment import as_problem
 from orbslam_hgcn.backend.pose_graph import relative_sim3
 from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver, SolverError
-from orbslam_hgcn.backend.synthetic import drifted_loop, make_scene, perturb_pose
 from orbslam_hgcn.cli import main
 from orbslam_hgcn.config import BackendConfig, ORBConfig, ThreadsConfig, load_camera
 from orbslam_hgcn.datasets import open_sequence
@@ -32,6 +31,8 @@ from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
 from orbslam_hgcn.pipeline.stages import ThreadedStages
 from orbslam_hgcn.pipeline.system import Configs, System
 from orbslam_hgcn.pipeline.worker import WorkerError
+
+from backend_fixtures import drifted_loop, make_scene, perturb_pose
 
 N_FRAMES = 50  # initialisation takes about 22 frames of this sequence
 
