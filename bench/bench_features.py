@@ -17,8 +17,14 @@ import cv2
 import numpy as np
 
 from orbslam_hgcn.config import ORBConfig, load_camera
-from orbslam_hgcn.features.grid import FeatureGrid
-from orbslam_hgcn.features.matching import (
+from orbslam_hgcn.features.orb import ORBExtractor
+from orbslam_hgcn.geometry.epipolar import epipole, fundamental_12_from_poses
+from orbslam_hgcn.geometry.pnp import solve_pnp_ransac
+from orbslam_hgcn.geometry.se3 import inv_T
+from orbslam_hgcn.geometry.sim3 import sim3_ransac
+from orbslam_hgcn.geometry.two_view import TwoViewInitializer
+from orbslam_hgcn.match.grid import FeatureGrid
+from orbslam_hgcn.match.matching import (
     bow_candidate_pairs,
     brute_force_match,
     fuse_candidates,
@@ -27,12 +33,6 @@ from orbslam_hgcn.features.matching import (
     search_for_initialization,
     search_for_triangulation,
 )
-from orbslam_hgcn.features.orb import ORBExtractor
-from orbslam_hgcn.geometry.epipolar import epipole, fundamental_12_from_poses
-from orbslam_hgcn.geometry.pnp import solve_pnp_ransac
-from orbslam_hgcn.geometry.se3 import inv_T
-from orbslam_hgcn.geometry.sim3 import sim3_ransac
-from orbslam_hgcn.geometry.two_view import TwoViewInitializer
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TUM = DATA / "tum_fr3_long_office_household_sample"

@@ -3,8 +3,8 @@
 Two steps of tracking run on every frame over a few hundred points, where numpy's
 per-call overhead on small arrays outweighs the arithmetic: the pose-only optimisation
 (:mod:`orbslam_hgcn.backend.pose_only`) and the window search of projected points
-(:mod:`orbslam_hgcn.features.projection_search`). Local mapping's triangulation search
-(:mod:`orbslam_hgcn.features.matching`) is warmed with them; local BA's kernels
+(:mod:`orbslam_hgcn.match.projection_search`). Local mapping's triangulation search
+(:mod:`orbslam_hgcn.match.matching`) is warmed with them; local BA's kernels
 (:mod:`orbslam_hgcn.backend.schur_ba`) are warmed by the solver that runs them. They are compiled with numba
 (:data:`jit`): without the GIL, so other threads run meanwhile, and cached on disk beside
 their modules (or in numba's user cache when the package folder is read-only). ORB
@@ -37,11 +37,11 @@ def warm_up() -> float:
     """Compile (or load from the cache) every kernel by running it on a tiny problem with
     the argument types of a real run. Returns the seconds it took."""
     from orbslam_hgcn.backend.pose_only import optimize_pose
-    from orbslam_hgcn.features.grid import FeatureGrid
     from orbslam_hgcn.features.keypoints import KeypointSet
-    from orbslam_hgcn.features.matching import search_for_triangulation
-    from orbslam_hgcn.features.projection_search import fuse_candidates, search_by_projection
     from orbslam_hgcn.geometry.camera import PinholeCamera
+    from orbslam_hgcn.match.grid import FeatureGrid
+    from orbslam_hgcn.match.matching import search_for_triangulation
+    from orbslam_hgcn.match.projection_search import fuse_candidates, search_by_projection
 
     t0 = time.perf_counter()
     camera = PinholeCamera(100.0, 100.0, 50.0, 50.0, 100, 100)

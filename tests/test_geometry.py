@@ -8,7 +8,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from orbslam_hgcn.config import InitializerConfig, load_camera
-from orbslam_hgcn.features.matching import brute_force_match
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.geometry.epipolar import (
     decompose_essential,
@@ -22,6 +21,7 @@ from orbslam_hgcn.geometry.se3 import angle_between_deg, inv_T, make_T, rotation
 from orbslam_hgcn.geometry.sim3 import horn_similarity, sim3_ransac
 from orbslam_hgcn.geometry.triangulation import projection_matrix, triangulate_checked, triangulate_dlt
 from orbslam_hgcn.geometry.two_view import TwoViewInitializer, homography_motions
+from orbslam_hgcn.match.matching import brute_force_match
 from orbslam_hgcn.trajectory import read_tum
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])

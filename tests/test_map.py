@@ -11,9 +11,9 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import make_T
 from orbslam_hgcn.map import Frame, Map, MapSnapshot, check_invariants, essential_graph, predict_scale, snapshot
 from orbslam_hgcn.map.graph import COVISIBILITY, LOOP, TREE
-from orbslam_hgcn.features.hamming import hamming_matrix
 from orbslam_hgcn.map.mappoint import distinctive_descriptor, distinctive_descriptors, normal_and_depth
 from orbslam_hgcn.map.window import apply_window, local_window
+from orbslam_hgcn.match.hamming import hamming_matrix
 
 CAM = PinholeCamera(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
 SCALES = 1.2 ** np.arange(8)

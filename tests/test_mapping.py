@@ -14,9 +14,9 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.epipolar import fundamental_12_from_poses
 from orbslam_hgcn.geometry.se3 import make_T
 from orbslam_hgcn.map import Frame, Map, check_invariants
-from orbslam_hgcn.mapping.culling import cull_recent_points, redundant_keyframes
 from orbslam_hgcn.mapping import fuse as fuse_module
 from orbslam_hgcn.mapping import triangulate as triangulate_module
+from orbslam_hgcn.mapping.culling import cull_recent_points, redundant_keyframes
 from orbslam_hgcn.mapping.fuse import search_in_neighbors
 from orbslam_hgcn.mapping.triangulate import create_new_points, epipolar_candidate_pairs
 from orbslam_hgcn.pipeline.system import System
@@ -268,8 +268,8 @@ def test_compiled_kernels_have_one_signature_after_a_run(synth_run):
     from orbslam_hgcn.backend.pose_only import _optimize
     from orbslam_hgcn.features.distribute import _distribute
     from orbslam_hgcn.features.fast import detect_level
-    from orbslam_hgcn.features.projection_search import _best_two_in_windows
     from orbslam_hgcn.features.rbrief import ic_moments, rbrief
+    from orbslam_hgcn.match.projection_search import _best_two_in_windows
 
     assert synth_run.mapper.timings["fuse"], "the run fused points"
     assert len(_optimize.signatures) == 1

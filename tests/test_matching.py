@@ -5,10 +5,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from orbslam_hgcn.features.grid import FeatureGrid
-from orbslam_hgcn.features.hamming import hamming_matrix, hamming_pairs, rotation_consistency
 from orbslam_hgcn.features.keypoints import KeypointSet
-from orbslam_hgcn.features.matching import (
+from orbslam_hgcn.geometry.camera import PinholeCamera
+from orbslam_hgcn.geometry.epipolar import epipole, fundamental_12_from_poses
+from orbslam_hgcn.geometry.se3 import make_T
+from orbslam_hgcn.match.grid import FeatureGrid
+from orbslam_hgcn.match.hamming import hamming_matrix, hamming_pairs, rotation_consistency
+from orbslam_hgcn.match.matching import (
     bow_candidate_pairs,
     brute_force_match,
     fuse_candidates,
@@ -17,9 +20,6 @@ from orbslam_hgcn.features.matching import (
     search_for_initialization,
     search_for_triangulation,
 )
-from orbslam_hgcn.geometry.camera import PinholeCamera
-from orbslam_hgcn.geometry.epipolar import epipole, fundamental_12_from_poses
-from orbslam_hgcn.geometry.se3 import make_T
 
 
 # --- Hamming distances and the rotation check ------------------------------------------

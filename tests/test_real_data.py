@@ -14,10 +14,10 @@ import pytest
 from orbslam_hgcn.config import ORBConfig, dataset_settings
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.datasets.base import Sequence
-from orbslam_hgcn.features.grid import FeatureGrid
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.geometry.se3 import angle_between_deg, inv_T, rotation_angle_deg
 from orbslam_hgcn.map import Frame, Map, check_invariants
+from orbslam_hgcn.match.grid import FeatureGrid
 from orbslam_hgcn.pipeline.run import run_dataset, trajectory_ate
 from orbslam_hgcn.pipeline.system import Configs, System
 from orbslam_hgcn.tracking.initializer import MonocularInitializer

@@ -5,10 +5,10 @@ gets back to OK after a forced loss."""
 import numpy as np
 import pytest
 
-from orbslam_hgcn.features.grid import FeatureGrid
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.geometry.se3 import rotation_angle_deg
 from orbslam_hgcn.map import Frame
+from orbslam_hgcn.match.grid import FeatureGrid
 from orbslam_hgcn.tracking.relocalization import Relocalizer, relocalize
 from orbslam_hgcn.tracking.tracker import Tracker, TrackingState
 from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector

@@ -7,13 +7,13 @@ import pytest
 
 from orbslam_hgcn.config import ORBConfig, TrackingConfig
 from orbslam_hgcn.datasets import open_sequence
-from orbslam_hgcn.features.grid import FeatureGrid
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import angle_between_deg, inv_T, rotation_angle_deg
 from orbslam_hgcn.map import Frame, Map, check_invariants
 from orbslam_hgcn.mapping.local_mapper import LocalMapper
+from orbslam_hgcn.match.grid import FeatureGrid
 from orbslam_hgcn.tracking import motion
 from orbslam_hgcn.tracking.frame_ops import orthonormalize, project, resolve_points
 from orbslam_hgcn.tracking.initializer import MonocularInitializer

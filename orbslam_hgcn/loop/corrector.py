@@ -35,11 +35,11 @@ import numpy as np
 
 from orbslam_hgcn.backend.pose_graph import correct_points, optimize_essential_graph, sim3_to_se3
 from orbslam_hgcn.config import BackendConfig, LoopClosingConfig
-from orbslam_hgcn.features.grid import FeatureGrid
 from orbslam_hgcn.geometry.se3 import inv_S
 from orbslam_hgcn.loop.projection import match_points_in_keyframe
 from orbslam_hgcn.loop.sim3_check import LoopMatch
 from orbslam_hgcn.map import Map
+from orbslam_hgcn.match.grid import FeatureGrid
 
 log = logging.getLogger(__name__)
 

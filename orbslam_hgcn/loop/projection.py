@@ -13,10 +13,10 @@ import logging
 
 import numpy as np
 
-from orbslam_hgcn.features.grid import FeatureGrid
-from orbslam_hgcn.features.hamming import TH_HIGH, TH_LOW
-from orbslam_hgcn.features.matching import search_by_projection
 from orbslam_hgcn.map import KeyFrame, Map, predict_scale
+from orbslam_hgcn.match.grid import FeatureGrid
+from orbslam_hgcn.match.hamming import TH_HIGH, TH_LOW
+from orbslam_hgcn.match.matching import search_by_projection
 
 log = logging.getLogger(__name__)
 

@@ -28,12 +28,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from orbslam_hgcn.config import LoopClosingConfig
-from orbslam_hgcn.features.grid import FeatureGrid
-from orbslam_hgcn.features.matching import search_by_bow
 from orbslam_hgcn.geometry.sim3 import sim3_ransac
 from orbslam_hgcn.loop.projection import match_points_in_keyframe, search_by_sim3
 from orbslam_hgcn.loop.sim3_refine import optimize_sim3
 from orbslam_hgcn.map import KeyFrame, Map
+from orbslam_hgcn.match.grid import FeatureGrid
+from orbslam_hgcn.match.matching import search_by_bow
 
 log = logging.getLogger(__name__)
 

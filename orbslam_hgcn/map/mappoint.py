@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from orbslam_hgcn.features.hamming import hamming_matrix
+from orbslam_hgcn.match.hamming import hamming_matrix
 
 log = logging.getLogger(__name__)
 

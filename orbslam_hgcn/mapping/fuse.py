@@ -16,9 +16,9 @@ import logging
 import numpy as np
 
 from orbslam_hgcn.config import LocalMappingConfig
-from orbslam_hgcn.features.grid import FeatureGrid
-from orbslam_hgcn.features.matching import fuse_candidates
 from orbslam_hgcn.map import KeyFrame, Map
+from orbslam_hgcn.match.grid import FeatureGrid
+from orbslam_hgcn.match.matching import fuse_candidates
 
 log = logging.getLogger(__name__)
 

@@ -21,10 +21,10 @@ import logging
 import numpy as np
 
 from orbslam_hgcn.config import LocalMappingConfig
-from orbslam_hgcn.features.matching import bow_candidate_pairs, search_for_triangulation
 from orbslam_hgcn.geometry.epipolar import epipole, fundamental_12_from_poses
 from orbslam_hgcn.geometry.triangulation import triangulate_checked
 from orbslam_hgcn.map import KeyFrame, Map
+from orbslam_hgcn.match.matching import bow_candidate_pairs, search_for_triangulation
 
 log = logging.getLogger(__name__)
 

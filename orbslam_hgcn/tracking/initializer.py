@@ -21,7 +21,7 @@ frame, in a 100 px window around their last matched position. On real forward dr
 (KITTI 00, 2000 features) that found only 50-90 matches between consecutive frames, so
 the reference was dropped every frame or two and the parallax never reached 1 degree.
 Here every keypoint of the reference is followed frame to frame
-(:func:`~orbslam_hgcn.features.matching.search_for_initialization_tracks`): searched
+(:func:`~orbslam_hgcn.match.matching.search_for_initialization_tracks`): searched
 with its descriptor, level and orientation as last seen, within one level of it, around
 its last position moved by its last image motion, in a window of ``init_window`` px at
 640 px image width, scaled with the image (194 px on KITTI's 1241 px). A keypoint not
@@ -38,10 +38,10 @@ import numpy as np
 
 from orbslam_hgcn.backend.bundle_adjustment import two_view_bundle_adjustment
 from orbslam_hgcn.config import BackendConfig, InitializerConfig, TrackingConfig
-from orbslam_hgcn.features.grid import FeatureGrid
-from orbslam_hgcn.features.matching import search_for_initialization_tracks
 from orbslam_hgcn.geometry.two_view import TwoViewInitializer
 from orbslam_hgcn.map import Frame, KeyFrame, Map
+from orbslam_hgcn.match.grid import FeatureGrid
+from orbslam_hgcn.match.matching import search_for_initialization_tracks
 
 log = logging.getLogger(__name__)
 

@@ -20,9 +20,9 @@ import logging
 import numpy as np
 
 from orbslam_hgcn.config import TrackingConfig
-from orbslam_hgcn.features.grid import FeatureGrid
-from orbslam_hgcn.features.matching import radius_by_viewing_cos, search_by_projection
 from orbslam_hgcn.map import Frame, Map, predict_scale
+from orbslam_hgcn.match.grid import FeatureGrid
+from orbslam_hgcn.match.matching import radius_by_viewing_cos, search_by_projection
 from orbslam_hgcn.tracking.frame_ops import project
 
 log = logging.getLogger(__name__)

@@ -17,9 +17,9 @@ import logging
 import numpy as np
 
 from orbslam_hgcn.config import BackendConfig, TrackingConfig
-from orbslam_hgcn.features.grid import FeatureGrid
-from orbslam_hgcn.features.matching import search_by_bow, search_by_projection
 from orbslam_hgcn.map import Frame, KeyFrame, Map, predict_scale
+from orbslam_hgcn.match.grid import FeatureGrid
+from orbslam_hgcn.match.matching import search_by_bow, search_by_projection
 from orbslam_hgcn.tracking.frame_ops import (
     discard_outliers,
     optimize_frame_pose,

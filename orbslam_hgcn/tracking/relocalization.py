@@ -30,10 +30,10 @@ import numpy as np
 
 from orbslam_hgcn.backend.pose_only import optimize_pose
 from orbslam_hgcn.config import BackendConfig, RelocalizationConfig
-from orbslam_hgcn.features.grid import FeatureGrid
-from orbslam_hgcn.features.matching import search_by_bow, search_by_projection
 from orbslam_hgcn.geometry.pnp import solve_pnp_ransac
 from orbslam_hgcn.map import Frame, KeyFrame, Map, predict_scale
+from orbslam_hgcn.match.grid import FeatureGrid
+from orbslam_hgcn.match.matching import search_by_bow, search_by_projection
 from orbslam_hgcn.vocabulary.database import KeyframeDatabase
 
 log = logging.getLogger(__name__)

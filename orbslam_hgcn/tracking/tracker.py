@@ -28,11 +28,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from orbslam_hgcn.config import BackendConfig, InitializerConfig, TrackingConfig
-from orbslam_hgcn.features.grid import FeatureGrid
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import inv_T
 from orbslam_hgcn.map import Frame, KeyFrame, Map
+from orbslam_hgcn.match.grid import FeatureGrid
 from orbslam_hgcn.tracking.frame_ops import (
     discard_outliers,
     good_keyframe,

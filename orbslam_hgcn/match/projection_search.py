@@ -11,8 +11,8 @@ per point) is one compiled loop (:func:`_best_two_in_windows`, see
 :mod:`orbslam_hgcn.compiled`) rather than numpy over the candidate pairs: 0.9 against 2.6 ms
 for 400 points in a window of 4 px per level. It visits candidates in the order of
 :meth:`FeatureGrid.candidate_pairs` and keeps the earliest on ties, as
-:func:`~orbslam_hgcn.features.hamming.best_two_per_group` does, so the matches are the same.
-The initialiser's search (:func:`~orbslam_hgcn.features.matching.search_for_initialization`,
+:func:`~orbslam_hgcn.match.hamming.best_two_per_group` does, so the matches are the same.
+The initialiser's search (:func:`~orbslam_hgcn.match.matching.search_for_initialization`,
 2000 features in windows of 200 px) uses the same loop (:func:`scan_windows`): 1.7 against
 16.9 ms per call.
 """
@@ -25,15 +25,15 @@ import math
 import numpy as np
 
 from orbslam_hgcn.compiled import jit
-from orbslam_hgcn.features.grid import FeatureGrid
-from orbslam_hgcn.features.hamming import (
+from orbslam_hgcn.features.keypoints import KeypointSet
+from orbslam_hgcn.geometry.camera import PinholeCamera
+from orbslam_hgcn.match.grid import FeatureGrid
+from orbslam_hgcn.match.hamming import (
     TH_HIGH,
     TH_LOW,
     apply_rotation_check,
     resolve_conflicts,
 )
-from orbslam_hgcn.features.keypoints import KeypointSet
-from orbslam_hgcn.geometry.camera import PinholeCamera
 
 log = logging.getLogger(__name__)
 

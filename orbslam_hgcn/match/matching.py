@@ -8,7 +8,7 @@ the later one wins or is skipped depending on the search; here the closer query 
 which does not depend on the order of the queries.
 
 The projection searches (tracking, fusion) live in
-:mod:`orbslam_hgcn.features.projection_search` and are re-exported here.
+:mod:`orbslam_hgcn.match.projection_search` and are re-exported here.
 """
 
 from __future__ import annotations
@@ -20,8 +20,9 @@ import cv2
 import numpy as np
 
 from orbslam_hgcn.compiled import jit
-from orbslam_hgcn.features.grid import FeatureGrid
-from orbslam_hgcn.features.hamming import (
+from orbslam_hgcn.features.keypoints import KeypointSet
+from orbslam_hgcn.match.grid import FeatureGrid
+from orbslam_hgcn.match.hamming import (
     TH_HIGH,
     TH_LOW,
     apply_rotation_check,
@@ -30,8 +31,7 @@ from orbslam_hgcn.features.hamming import (
     hamming_pairs,
     resolve_conflicts,
 )
-from orbslam_hgcn.features.keypoints import KeypointSet
-from orbslam_hgcn.features.projection_search import (
+from orbslam_hgcn.match.projection_search import (
     fuse_candidates,
     predict_octave,
     radius_by_viewing_cos,
