@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from typing import NamedTuple
 
 import numpy as np
@@ -253,6 +254,18 @@ def optimize_pose(
         cfg.pose_rounds, cfg.pose_iterations, cfg.pose_robust_rounds, float(cfg.chi2_mono),
     )  # fmt: skip
     return PoseResult(T, inlier, int(inlier.sum()) >= cfg.pose_min_inliers)
+
+
+def warm_up() -> float:
+    """Compile (first use after an install) or load from numba's cache the kernels of
+    :func:`optimize_pose`, on a tiny problem with the argument types of a real one; returns
+    the seconds it took."""
+    t0 = time.perf_counter()
+    uv = np.array([[20.0, 30.0], [60.0, 40.0], [45.0, 70.0], [75.0, 75.0]])
+    X = np.column_stack([(uv - 50.0) / 100.0 * 2.0, np.full(len(uv), 2.0)])
+    K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 50.0], [0.0, 0.0, 1.0]])
+    optimize_pose(np.eye(4), X, uv, np.ones(len(uv)), K)
+    return time.perf_counter() - t0
 
 
 def optimize_pose_gtsam(

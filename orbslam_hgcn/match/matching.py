@@ -14,6 +14,7 @@ The projection searches (tracking, fusion) live in
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Mapping
 
 import cv2
@@ -37,6 +38,7 @@ from orbslam_hgcn.match.projection_search import (
     radius_by_viewing_cos,
     scan_windows,
     search_by_projection,
+    warm_problem,
 )
 
 log = logging.getLogger(__name__)
@@ -337,3 +339,13 @@ def brute_force_match(
         ok &= back[np.clip(best, 0, len(d2) - 1), 0] == np.arange(len(d1))
     q = np.flatnonzero(ok)
     return np.stack([q, best[q]], axis=1).astype(np.int64)
+
+
+def warm_up() -> float:
+    """Compile (first use after an install) or load from numba's cache the kernels of
+    :func:`search_for_triangulation`; returns the seconds it took."""
+    t0 = time.perf_counter()
+    _, kps, _, _ = warm_problem()
+    pairs = (np.arange(len(kps), dtype=np.int64), np.arange(len(kps), dtype=np.int64))
+    search_for_triangulation(kps, kps, np.eye(3), np.array([500.0, 500.0]), pairs)
+    return time.perf_counter() - t0

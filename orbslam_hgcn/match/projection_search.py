@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 
 import numpy as np
 
@@ -248,3 +249,32 @@ def fuse_candidates(
     match[cand[good]] = best[good]
     out_dist[cand[good]] = bd[good]
     return match, out_dist
+
+
+def warm_problem() -> tuple[PinholeCamera, KeypointSet, FeatureGrid, np.ndarray]:
+    """A tiny matching problem with the argument types of a real one (for the warm-ups):
+    (camera, 4 keypoints, their grid, (4, 3) points in front of the camera that project
+    onto them)."""
+    camera = PinholeCamera(100.0, 100.0, 50.0, 50.0, 100, 100)
+    uv = np.array([[20.0, 30.0], [60.0, 40.0], [45.0, 70.0], [75.0, 75.0]])
+    X = np.column_stack([(uv - 50.0) / 100.0 * 2.0, np.full(len(uv), 2.0)])
+    n = len(uv)
+    kps = KeypointSet(
+        uv_raw=uv.astype(np.float32), uv=uv, octave=np.zeros(n, np.int32), angle=np.zeros(n, np.float32),
+        response=np.ones(n, np.float32), desc=np.zeros((n, 32), np.uint8), scale_factors=np.array([1.0, 1.2]),
+    )  # fmt: skip
+    return camera, kps, FeatureGrid(kps, camera), X
+
+
+def warm_up() -> float:
+    """Compile (first use after an install) or load from numba's cache the window scan of
+    :func:`search_by_projection` and :func:`fuse_candidates`; returns the seconds it took."""
+    t0 = time.perf_counter()
+    camera, kps, grid, X = warm_problem()
+    n = len(kps)
+    search_by_projection(kps, grid, kps.uv, kps.octave, kps.desc, 2.0, ratio=0.8, available=np.ones(n, bool))
+    fuse_candidates(
+        kps, grid, camera, np.eye(4), X, kps.desc, X / np.linalg.norm(X, axis=1, keepdims=True),
+        np.zeros(n), np.full(n, 10.0),
+    )  # fmt: skip
+    return time.perf_counter() - t0

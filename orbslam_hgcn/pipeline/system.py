@@ -40,7 +40,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from orbslam_hgcn.compiled import warm_up
+from orbslam_hgcn.backend import pose_only
 from orbslam_hgcn.config import (
     BackendConfig,
     InitializerConfig,
@@ -64,9 +64,9 @@ from orbslam_hgcn.loop.closer import LoopCloser
 from orbslam_hgcn.map import Frame, KeyFrame, Map
 from orbslam_hgcn.map.atlas import Atlas
 from orbslam_hgcn.mapping.local_mapper import LocalMapper
+from orbslam_hgcn.match import matching, projection_search
 from orbslam_hgcn.pipeline.extraction import ExtractionProcess, warm_up_extractors
 from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
-from orbslam_hgcn.pipeline.stages import SequentialStages, ThreadedStages
 from orbslam_hgcn.pipeline.results import (
     camera_trajectory,
     frame_counts,
@@ -74,12 +74,26 @@ from orbslam_hgcn.pipeline.results import (
     summary_ms,
     write_outputs,
 )
+from orbslam_hgcn.pipeline.stages import SequentialStages, ThreadedStages
 from orbslam_hgcn.tracking.relocalization import Relocalizer
 from orbslam_hgcn.tracking.tracker import Tracker, TrackingState, TrackResult
 from orbslam_hgcn.trajectory import Trajectory, write_tum
 from orbslam_hgcn.vocabulary.database import KeyframeDatabase
 
 log = logging.getLogger(__name__)
+
+
+def warm_up_kernels() -> float:
+    """Compile (first run after an install) or load from numba's cache the compiled kernels
+    of tracking and local mapping (pose-only optimisation, projection search and fusion,
+    triangulation search), each module warming its own; returns the seconds it took."""
+    t0 = time.perf_counter()
+    for module in (pose_only, projection_search, matching):
+        module.warm_up()
+    seconds = time.perf_counter() - t0
+    if seconds > 2.0:
+        log.info("compiled the tracking kernels in %.1f s (cached for later runs)", seconds)
+    return seconds
 
 
 @dataclass(frozen=True)
@@ -336,7 +350,7 @@ class System:
         self.observers: list[Callable[[System, FrameRecord, TrackResult], None]] = []
         # The tracking kernels are compiled (first run after an install) or loaded from
         # their cache here rather than inside the first frames.
-        warm_up()
+        warm_up_kernels()
 
     # --- stages ------------------------------------------------------------------------
     @property
