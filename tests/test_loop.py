@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from orbslam_hgcn.backend.bundle_adjustment import observation_chi2
+from orbslam_hgcn.backend.sim3_refine import optimize_sim3, sim3_errors
 from orbslam_hgcn.config import LoopClosingConfig
 from orbslam_hgcn.geometry.se3 import inv_S, inv_T, rotation_angle_deg
 from orbslam_hgcn.geometry.sim3 import horn_similarity
@@ -18,7 +19,6 @@ from orbslam_hgcn.loop.corrector import correct_loop
 from orbslam_hgcn.loop.detector import ConsistencyFilter
 from orbslam_hgcn.loop.projection import search_by_sim3
 from orbslam_hgcn.loop.sim3_check import LoopMatch, compute_sim3, loop_neighbourhood
-from orbslam_hgcn.loop.sim3_refine import optimize_sim3, sim3_errors
 from orbslam_hgcn.map import Frame, Map, check_invariants
 from orbslam_hgcn.map.window import global_window
 from orbslam_hgcn.vocabulary.database import KeyframeDatabase
@@ -334,9 +334,9 @@ def test_system_closes_a_small_synthetic_loop(tmp_path_factory):
     between the two visits and the keyframe ATE falls when it is corrected. Needs the
     shipped HGCN vocabulary; renders 600 frames and runs SLAM on them (minutes)."""
     from orbslam_hgcn.datasets import open_sequence
-    from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
     from orbslam_hgcn.pipeline.run import trajectory_ate
     from orbslam_hgcn.pipeline.system import System
+    from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
     from orbslam_hgcn.vocabulary import default_vocabulary_path, load_vocabulary
 
     if not default_vocabulary_path("hgcn").is_file():

@@ -8,7 +8,7 @@ For each consistent candidate, in the order the detector gives them:
    one node, ratio 0.75, rotation check); at least 20 matches;
 2. Horn's closed-form similarity inside RANSAC (0.99, 20 inliers, 300 iterations);
 3. more matches guided by that similarity (SearchBySim3, window 7.5);
-4. refine the similarity on the matches (OptimizeSim3, gtsam; :mod:`.sim3_refine`); at
+4. refine the similarity on the matches (OptimizeSim3, gtsam; :mod:`orbslam_hgcn.backend.sim3_refine`); at
    least 20 inliers;
 5. project the points of the candidate and its covisible keyframes into the current
    keyframe with the corrected pose ``S_cw = S_cm T_mw`` (window 10) and accept the loop
@@ -27,10 +27,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from orbslam_hgcn.backend.sim3_refine import optimize_sim3
 from orbslam_hgcn.config import LoopClosingConfig
 from orbslam_hgcn.geometry.sim3 import sim3_ransac
 from orbslam_hgcn.loop.projection import match_points_in_keyframe, search_by_sim3
-from orbslam_hgcn.loop.sim3_refine import optimize_sim3
 from orbslam_hgcn.map import KeyFrame, Map
 from orbslam_hgcn.match.grid import FeatureGrid
 from orbslam_hgcn.match.matching import search_by_bow
