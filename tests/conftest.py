@@ -1,4 +1,6 @@
-"""Shared test fixtures: paths to the real sample data beside the repository."""
+"""Shared test fixtures: paths to the real sample data beside the repository (tests that
+need it skip without it), and the renders the end-to-end tests run on (made here, from
+tests/data, so that those tests never skip)."""
 
 from pathlib import Path
 
@@ -9,6 +11,8 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 TUM_SAMPLE = SHARED_DATA / "tum_fr3_long_office_household_sample"
 EUROC_SAMPLE = SHARED_DATA / "euroc_V1_01_easy_first95"
 KITTI_SAMPLE = SHARED_DATA / "kitti00_first160" / "sequences" / "00"
+# The real fr3 long-office camera path (ground truth only; tests/data/README.md).
+REPLAY_GT = Path(__file__).resolve().parent / "data" / "tum_fr3_long_office_household_groundtruth.txt"
 
 
 @pytest.fixture
@@ -33,14 +37,17 @@ def kitti_sample() -> Path:
     return KITTI_SAMPLE
 
 
+@pytest.fixture
+def replay_gt() -> Path:
+    """The real fr3 long-office ground truth (TUM format), shipped with the tests."""
+    return REPLAY_GT
+
+
 @pytest.fixture(scope="session")
 def synth_replay_100(tmp_path_factory) -> Path:
     """The first 100 frames of the real fr3 long-office camera path replayed in a synthetic
     room (rendered once per test session)."""
     from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 
-    gt = TUM_SAMPLE / "groundtruth.txt"
-    if not gt.is_file():
-        pytest.skip(f"ground truth to replay not found at {gt}")
     out = tmp_path_factory.mktemp("synth_replay_100")
-    return render_sequence(out, SynthOptions(trajectory="replay", gt=str(gt), frames=100), progress=False)
+    return render_sequence(out, SynthOptions(trajectory="replay", gt=str(REPLAY_GT), frames=100), progress=False)

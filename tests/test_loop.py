@@ -337,10 +337,8 @@ def test_system_closes_a_small_synthetic_loop(tmp_path_factory):
     from orbslam_hgcn.pipeline.run import trajectory_ate
     from orbslam_hgcn.pipeline.system import System
     from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
-    from orbslam_hgcn.vocabulary import default_vocabulary_path, load_vocabulary
+    from orbslam_hgcn.vocabulary import load_vocabulary
 
-    if not default_vocabulary_path("hgcn").is_file():
-        pytest.skip("the shipped HGCN vocabulary is not installed")
     work = tmp_path_factory.mktemp("circle")
     gt = circle_ground_truth(work / "gt.txt")
     # Sensor noise and exposure drift: on clean renders the odometry drifts so little that the

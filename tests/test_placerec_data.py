@@ -111,7 +111,6 @@ def test_lcd_cli_missing_default_ground_truth(tmp_path, capsys):
 
 
 def test_lcd_cli_missing_vocabulary_file(tmp_path, capsys):
-    pytest.importorskip("orbslam_hgcn.vocabulary.base")
     train = _image_folder(tmp_path / "train", 3, seed=1)
     test = _image_folder(tmp_path / "test", 3, seed=2)
     np.save(test / "loop_gt.npy", np.zeros((3, 3)))

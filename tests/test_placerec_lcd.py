@@ -118,9 +118,9 @@ def test_vocabulary_must_fit_the_features(scene):
 
 def test_lcd_command_with_a_vocabulary_file(scene, tmp_path, capsys):
     """``orbslam-hgcn lcd`` end to end with a real (small) ORB-tree vocabulary file."""
-    orb_tree = pytest.importorskip("orbslam_hgcn.vocabulary.orb_tree")
     from orbslam_hgcn.cli import main
     from orbslam_hgcn.placerec.data import save_ground_truth
+    from orbslam_hgcn.vocabulary import orb_tree
 
     train, test, route, gt = scene
     folders = {}

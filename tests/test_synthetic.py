@@ -8,9 +8,12 @@ import pytest
 
 from orbslam_hgcn.cli import main
 from orbslam_hgcn.config import load_camera
-from orbslam_hgcn.synth.sequence import CameraEffects, SynthOptions, build_sequence, render_frame, render_sequence
+from orbslam_hgcn.geometry.camera import PinholeCamera
+from orbslam_hgcn.geometry.se3 import rotation_angle_deg
+from orbslam_hgcn.synth.layout import DeskSpec
 from orbslam_hgcn.synth.render import SceneRenderer, surface_texture
 from orbslam_hgcn.synth.scene import Scene, box_quads, face, raycast
+from orbslam_hgcn.synth.sequence import CameraEffects, SynthOptions, build_sequence, render_frame, render_sequence
 from orbslam_hgcn.synth.trajectory import (
     LoopPath,
     ReplayPath,
@@ -20,9 +23,6 @@ from orbslam_hgcn.synth.trajectory import (
     look_at,
     loop_ground_truth,
 )
-from orbslam_hgcn.synth.layout import DeskSpec
-from orbslam_hgcn.geometry.camera import PinholeCamera
-from orbslam_hgcn.geometry.se3 import rotation_angle_deg
 from orbslam_hgcn.trajectory import read_tum
 
 CAM = PinholeCamera(535.4, 539.2, 320.1, 247.6, 640, 480)
@@ -208,8 +208,8 @@ def test_up_and_convergence_from_a_synthetic_orbit():
     np.testing.assert_allclose(axes_convergence(T[:, :3, 3], T[:, :3, 2]), centre, atol=1e-6)
 
 
-def test_replay_scene_fits_the_real_trajectory(tum_sample):
-    gt = read_tum(tum_sample / "groundtruth.txt")
+def test_replay_scene_fits_the_real_trajectory(replay_gt):
+    gt = read_tum(replay_gt)
     scene, info = fit_scene_to_trajectory(gt.poses, scene_seed=0)
     P_s = (gt.positions - scene.T_world_scene[:3, 3]) @ scene.T_world_scene[:3, :3]
     room = scene.layout["room"]
@@ -228,8 +228,8 @@ def test_replay_scene_fits_the_real_trajectory(tum_sample):
     assert on_desk.mean() > 0.5, on_desk.mean()  # the optical axis mostly meets the desk and furniture
 
 
-def test_replay_path_reproduces_ground_truth(tum_sample):
-    gt = read_tum(tum_sample / "groundtruth.txt")
+def test_replay_path_reproduces_ground_truth(replay_gt):
+    gt = read_tum(replay_gt)
     path = ReplayPath(gt)
     np.testing.assert_allclose(path(gt.timestamps[:500]), gt.poses[:500], atol=1e-9)
     mid = 0.5 * (gt.timestamps[10] + gt.timestamps[11])
@@ -242,9 +242,9 @@ def test_replay_path_reproduces_ground_truth(tum_sample):
     assert stamps[0] == gt.timestamps[0] and gt.timestamps[-1] - 1 / 30 < stamps[-1] <= gt.timestamps[-1]
 
 
-def test_replay_sequence_outputs(tmp_path, tum_sample):
-    gt = read_tum(tum_sample / "groundtruth.txt")
-    opts = SynthOptions(trajectory="replay", gt=str(tum_sample / "groundtruth.txt"), frames=3, texel_scale=8.0,
+def test_replay_sequence_outputs(tmp_path, replay_gt):
+    gt = read_tum(replay_gt)
+    opts = SynthOptions(trajectory="replay", gt=str(replay_gt), frames=3, texel_scale=8.0,
                         loop_gt=True)
     out = render_sequence(tmp_path / "seq", opts, progress=False)
     written = read_tum(out / "groundtruth.txt")

@@ -10,18 +10,18 @@ import cv2
 import numpy as np
 import pytest
 
-rr = pytest.importorskip("rerun")
-from rerun.chunk import RrdReader  # noqa: E402
+import rerun as rr
+from rerun.chunk import RrdReader
 
-from orbslam_hgcn.config import VizConfig  # noqa: E402
-from orbslam_hgcn.errors import ConfigError, OrbslamError  # noqa: E402
-from orbslam_hgcn.viz import records as ent  # noqa: E402
-from orbslam_hgcn.viz.demo import demo_camera, fake_run, replay  # noqa: E402
-from orbslam_hgcn.viz.records import FrameLog, MapSnapshot, state_code  # noqa: E402
-from orbslam_hgcn.viz.rerun_logger import RerunLogger  # noqa: E402
-from orbslam_hgcn.viz.shapes import colormap, edge_segments, frustum_strips  # noqa: E402
-from orbslam_hgcn.cli import main  # noqa: E402
-from orbslam_hgcn.viz.sinks import DEFAULT_GRPC_URL, grpc_url, parse_rerun_arg, viewer_executable  # noqa: E402
+from orbslam_hgcn.config import VizConfig
+from orbslam_hgcn.errors import ConfigError, OrbslamError
+from orbslam_hgcn.viz import records as ent
+from orbslam_hgcn.viz.demo import demo_camera, fake_run, replay
+from orbslam_hgcn.viz.records import FrameLog, MapSnapshot, state_code
+from orbslam_hgcn.viz.rerun_logger import RerunLogger
+from orbslam_hgcn.viz.shapes import colormap, edge_segments, frustum_strips
+from orbslam_hgcn.cli import main
+from orbslam_hgcn.viz.sinks import DEFAULT_GRPC_URL, grpc_url, parse_rerun_arg, viewer_executable
 
 N_FRAMES, LOOP_AT, KF_EVERY = 30, 20, 5
 

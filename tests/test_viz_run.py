@@ -11,15 +11,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-rr = pytest.importorskip("rerun")
-from rerun.chunk import RrdReader  # noqa: E402
+import rerun as rr
+from rerun.chunk import RrdReader
 
-from orbslam_hgcn import cli  # noqa: E402
-from orbslam_hgcn.pipeline import run as run_module  # noqa: E402
-from orbslam_hgcn.pipeline.system import System  # noqa: E402
-from orbslam_hgcn.trajectory import read_tum  # noqa: E402
-from orbslam_hgcn.viz import records as ent  # noqa: E402
-from orbslam_hgcn.viz.live import LiveViz, gt_in_map, sim3_ate  # noqa: E402
+from orbslam_hgcn import cli
+from orbslam_hgcn.pipeline import run as run_module
+from orbslam_hgcn.pipeline.system import System
+from orbslam_hgcn.trajectory import read_tum
+from orbslam_hgcn.viz import records as ent
+from orbslam_hgcn.viz.live import LiveViz, gt_in_map, sim3_ate
 
 N_FRAMES = 50
 
