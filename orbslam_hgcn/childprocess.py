@@ -9,9 +9,11 @@ builds its object as ``factory(*factory_args)`` (both must pickle). A request is
 name and its arguments, sent through a pipe; the calling thread waits on the pipe, which
 releases the GIL, and between waits it forwards a stop request (a shared event the method
 gets as ``should_stop`` when the call is ``stoppable``) and notices a child that died. An
-exception in the child comes back as ``error_type`` with the child's traceback; the child
-stays up for the next request. A child that died is reported as ``error_type`` by the
-request that finds it dead; it is replaced (as one interrupted mid-request) on the next.
+exception in the child comes back as ``error_type`` (a
+:class:`~orbslam_hgcn.errors.StageError` naming the process) with the child's traceback;
+the child stays up for the next request. A child that died is reported as ``error_type``
+with ``lost=True`` by the request that finds it dead; it is replaced (as one interrupted
+mid-request) on the next.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ import threading
 import traceback
 from collections.abc import Callable
 from typing import Any
+
+from orbslam_hgcn.errors import StageError
 
 log = logging.getLogger(__name__)
 
@@ -65,10 +69,10 @@ class ChildProcess:
     """One persistent child serving ``factory(*factory_args)``; one request at a time
     (callers from several threads queue on a lock).
 
-    name: names the process (``orbslam-<name>``) and the errors; error_type: raised for a
-    failed request or a lost child; poll_s: how often the waiting thread looks at
-    ``should_stop`` and at the child's health; nice: added to the child's niceness (lower
-    CPU priority) where the platform has ``os.nice``.
+    name: names the process (``orbslam-<name>``) and the errors (their ``stage``);
+    error_type: a StageError class, raised for a failed request or a lost child; poll_s:
+    how often the waiting thread looks at ``should_stop`` and at the child's health; nice:
+    added to the child's niceness (lower CPU priority) where the platform has ``os.nice``.
     """
 
     def __init__(
@@ -76,7 +80,7 @@ class ChildProcess:
         name: str,
         factory: Callable[..., Any],
         factory_args: tuple = (),
-        error_type: type[Exception] = RuntimeError,
+        error_type: type[StageError] = StageError,
         poll_s: float = 0.005,
         nice: int = 0,
     ) -> None:
@@ -129,7 +133,7 @@ class ChildProcess:
             if self._proc is not None and not self._proc.is_alive():
                 code = self._proc.exitcode
                 self._close_locked()
-                raise self.error_type(f"{self.name} process died (exit code {code}) before {op}")
+                raise self._error(f"{self.name} process died (exit code {code}) before {op}", lost=True)
             self._start()
             self._abort.clear()
             try:
@@ -138,8 +142,8 @@ class ChildProcess:
                 self._conn.send((op, args, stoppable))
                 while not self._conn.poll(self.poll_s):
                     if not self._proc.is_alive():
-                        raise self.error_type(
-                            f"{self.name} process died (exit code {self._proc.exitcode}) during {op}"
+                        raise self._error(
+                            f"{self.name} process died (exit code {self._proc.exitcode}) during {op}", lost=True
                         )
                     if should_stop is not None and not self._abort.is_set() and should_stop():
                         self._abort.set()
@@ -150,7 +154,7 @@ class ChildProcess:
             except (EOFError, OSError) as exc:
                 code = self._proc.exitcode if self._proc is not None else None
                 self._close_locked()
-                raise self.error_type(f"{self.name} process lost during {op} (exit code {code})") from exc
+                raise self._error(f"{self.name} process lost during {op} (exit code {code})", lost=True) from exc
             except BaseException:
                 # Interrupted while waiting (Ctrl-C, a failing callback): the reply would be
                 # out of step with the next request, so the process is replaced.
@@ -159,9 +163,12 @@ class ChildProcess:
             self.requests += 1
             if reply[0] == "ok":
                 return reply[1]
-            raise self.error_type(
+            raise self._error(
                 f"{self.name} process: {op} failed: {reply[1]}\n--- in the child process ---\n{reply[2]}"
             )
+
+    def _error(self, message: str, lost: bool = False) -> StageError:
+        return self.error_type(message, stage=f"{self.name} process", lost=lost)
 
     def kill(self) -> None:
         """Kill the child at once (tests use it to check that a lost child is reported)."""

@@ -2,8 +2,10 @@
 
 Each subcommand has a ``_add_<name>(sub)`` function that declares its arguments and binds
 a handler; the handler parses nothing itself and calls a typed function in the package.
-User errors (:class:`OrbslamError`) print one line on stderr and exit with status 2;
-Ctrl-C exits with status 130.
+User errors (:class:`OrbslamError`) print one line on stderr and exit with status 2; a
+stage that failed (:class:`StageError`: a worker thread, a child process) with status 4;
+Ctrl-C exits with status 130. ``run`` has its own statuses for each way a run can end
+(``orbslam-hgcn run --help``), and writes its results whichever it is.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from orbslam_hgcn import __version__
-from orbslam_hgcn.errors import OrbslamError
+from orbslam_hgcn.errors import OrbslamError, StageError, Terminated
 
 log = logging.getLogger("orbslam_hgcn")
 
@@ -52,6 +54,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
+    except StageError as exc:  # its message may carry a child process's traceback: one line
+        lines = str(exc).strip().splitlines() or [type(exc).__name__]
+        print(f"orbslam-hgcn {args.command}: error: {exc.stage} failed: {lines[0]}", file=sys.stderr)
+        return 4
     except OrbslamError as exc:
         print(f"orbslam-hgcn {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -318,13 +324,18 @@ def _add_sequential_argument(p: argparse.ArgumentParser) -> None:
 
 @subcommand
 def _add_run(sub: argparse._SubParsersAction) -> None:
+    from orbslam_hgcn.pipeline.ending import exit_status_help
+
     p = sub.add_parser(
         "run",
         help="run monocular SLAM over a dataset; write trajectories and stats",
         description="Track and map a sequence (local mapping and loop closing in worker threads, or in "
         "order with --sequential) and write "
         "KeyFrameTrajectory.txt, CameraTrajectory.txt (TUM format) and stats.json; prints the "
-        "ATE after Sim(3) alignment when the dataset has ground truth.",
+        "ATE after Sim(3) alignment when the dataset has ground truth. Whatever ends the run, the results "
+        "of the frames processed are written; stats.json says \"complete\": false and why when it ended early.",
+        epilog=exit_status_help(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _add_sequence_arguments(p)
     p.add_argument("--config", default=None,
@@ -336,6 +347,9 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
                    help="visual vocabulary: the shipped orb or hgcn one, a vocabulary file, or none "
                    "(default hgcn; needed for loop closing and relocalisation)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
+    p.add_argument("--on-bad-frame", choices=("skip", "stop"), default="skip",
+                   help="a frame whose image cannot be read (missing, empty, truncated, corrupt, wrong size): "
+                   "skip it with a warning and count it (default), or stop the run there (exit status 3)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     from orbslam_hgcn.viz.sinks import add_rerun_argument
 
@@ -349,20 +363,34 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run_run)
 
 
+def _terminate(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
 def _run_run(args: argparse.Namespace) -> int:
+    import signal
+
     from orbslam_hgcn.pipeline.run import format_report, run_dataset
 
-    report = run_dataset(
-        args.path, args.out, kind=args.dataset, config=args.config, max_frames=args.max_frames,
-        loop_closing=not args.no_loop, progress=not args.no_progress, vocab=args.vocab, rerun=args.rerun,
-        load_map=args.load_map, save_map=args.save_map, localization=args.localization,
-        sequential=args.sequential, speed=args.speed,
-    )
+    # SIGTERM ends a run as Ctrl-C does: the results so far are written.
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        report = run_dataset(
+            args.path, args.out, kind=args.dataset, config=args.config, max_frames=args.max_frames,
+            loop_closing=not args.no_loop, progress=not args.no_progress, vocab=args.vocab, rerun=args.rerun,
+            load_map=args.load_map, save_map=args.save_map, localization=args.localization,
+            sequential=args.sequential, speed=args.speed, on_bad_frame=args.on_bad_frame,
+        )
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     for line in format_report(report):
         print(line)
     for path in report.paths.values():
         print(f"wrote {path}")
-    return 130 if report.interrupted else 0
+    if not report.complete:
+        print(f"orbslam-hgcn run: {report.end.kind.replace('_', ' ')}: {report.end.reason}; the results of the "
+              f"frames processed are in {args.out}", file=sys.stderr)  # fmt: skip
+    return report.exit_status
 
 
 @subcommand
@@ -479,6 +507,8 @@ def _run_compare(args: argparse.Namespace) -> int:
     print(format_markdown(comp))
     for path in comp.paths.values():
         print(f"wrote {path}")
+    if comp.interrupted:
+        return 130
     return 1 if any(not r.ok for r in comp.runs) else 0
 
 

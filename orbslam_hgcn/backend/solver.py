@@ -33,12 +33,16 @@ from orbslam_hgcn.backend.bundle_adjustment import (
 )
 from orbslam_hgcn.childprocess import ChildProcess, StopFn
 from orbslam_hgcn.config import BackendConfig
+from orbslam_hgcn.errors import StageError
 
 log = logging.getLogger(__name__)
 
-class SolverError(RuntimeError):
-    """The optimiser process failed (an exception in it, or it died); the message carries
-    the child's traceback."""
+
+class SolverError(StageError):
+    """The optimiser process failed (an exception in it, or it died: ``lost``); the message
+    names the process (``local-ba``, ``global-ba``) and carries the child's traceback."""
+
+    stage = "optimiser process"
 
 
 class InProcessSolver:

@@ -150,16 +150,18 @@ class ImageListSequence(Sequence):
 def read_image(path: Path, *, color: bool = False, source: str | None = None) -> np.ndarray:
     """Load one image: (H, W) uint8 grayscale, or (H, W, 3) uint8 BGR with ``color``.
 
-    OpenCV scales 16-bit images to 8 bits. A missing, unreadable or corrupt file is a
+    OpenCV scales 16-bit images to 8 bits. A missing, empty, unreadable or corrupt file is a
     DatasetError naming the file (and the listing line ``source`` it came from, where given).
     """
     flags = cv2.IMREAD_COLOR if color else cv2.IMREAD_GRAYSCALE
     listed = f" (listed at {source})" if source else ""
     if not path.is_file():
         raise DatasetError(f"{path}: image file not found{listed}")
+    if path.stat().st_size == 0:
+        raise DatasetError(f"{path}: empty image file (0 bytes){listed}")
     image = cv2.imread(str(path), flags)
     if image is None or image.size == 0:
-        raise DatasetError(f"{path}: cannot read image (corrupt or unsupported format){listed}")
+        raise DatasetError(f"{path}: cannot read image (corrupt, truncated or unsupported format){listed}")
     return image
 
 

@@ -20,7 +20,10 @@ Sec. VI; LocalMapping::Run of ORB-SLAM2), in its order:
 Each step holds the map lock; local BA holds it only to cut its window from the map and
 to write the results back (keyframes and points that became bad meanwhile are skipped),
 not while it is solved, which a ``solver`` may do in another process
-(:mod:`orbslam_hgcn.backend.solver`).
+(:mod:`orbslam_hgcn.backend.solver`). When that process dies (killed, out of memory), the
+keyframe's local BA is skipped with a warning and counted (``counts["ba_process_lost"]``):
+the next keyframe's BA starts a new process and covers the same window. A process lost
+more than :data:`MAX_LOST_SOLVERS` times, or an error the solver reports, stops the stage.
 
 Stage timings of every call are kept in :attr:`LocalMapper.timings` (milliseconds).
 """
@@ -36,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from orbslam_hgcn.backend.bundle_adjustment import as_problem
-from orbslam_hgcn.backend.solver import InProcessSolver
+from orbslam_hgcn.backend.solver import InProcessSolver, SolverError
 from orbslam_hgcn.config import BackendConfig, LocalMappingConfig
 from orbslam_hgcn.map import KeyFrame, Map
 from orbslam_hgcn.map.window import apply_window, local_window
@@ -45,6 +48,8 @@ from orbslam_hgcn.mapping.fuse import search_in_neighbors
 from orbslam_hgcn.mapping.triangulate import create_new_points
 
 log = logging.getLogger(__name__)
+
+MAX_LOST_SOLVERS = 3  # local BA processes a run may lose before local mapping gives up
 
 
 class LocalMapper:
@@ -149,6 +154,12 @@ class LocalMapper:
             res, budget_hit = self.solver.local_ba(
                 problem, self.backend, self.config.ba_cpu_budget_s, self.should_abort
             )
+        except SolverError as exc:
+            if not exc.lost or self.counts["ba_process_lost"] >= MAX_LOST_SOLVERS:
+                raise
+            self.counts["ba_process_lost"] += 1
+            log.warning("local BA of keyframe %d skipped: %s; the next one starts a new process", kf.id, exc)
+            return
         finally:
             self.in_ba = False
         self.counts["ba_budget_hit"] += int(budget_hit)

@@ -7,8 +7,10 @@ alignment (Umeyama 1991; median, min, max over the runs), loops closed, frames l
 frames per second. Writes ``OUT/compare.md`` (Markdown tables), ``OUT/compare.json`` and
 ``OUT/compare_ate.png`` (a box plot of the ATE). With the stages run in order every run of
 one vocabulary gives the same result (seeded RANSAC); repeated runs differ only when the
-stages run on threads, through timing. A run that stopped with an error is recorded with
-it and the comparison goes on.
+stages run on threads, through timing. A run that stopped with an error, or ended early
+(its ``stats.json`` says ``"complete": false``), is recorded as failed with the reason and
+the comparison goes on; a run interrupted (Ctrl-C, SIGTERM) ends the comparison, which
+still writes its files for the runs made.
 
 A run that leaves more than :data:`MAX_UNTRACKED_SHARE` of its frames without a pose, or
 resets its map, counts as failed, as ORB-SLAM's tables mark such runs: its ATE is still
@@ -73,6 +75,7 @@ class Comparison:
     runs: list[RunOutcome]
     summary: dict[str, dict[str, Any]]
     paths: dict[str, Path] = field(default_factory=dict)
+    interrupted: bool = False  # a run was interrupted and the comparison stopped there
 
     def to_json(self) -> dict[str, Any]:
         return {"dataset": self.dataset, "summary": self.summary, "runs": [asdict(r) for r in self.runs]}
@@ -263,8 +266,11 @@ def run_comparison(
     outcomes: list[RunOutcome] = []
     name = Path(path).name
     threads: dict[str, Any] | None = None  # how the stages ran, from the first run's stats
+    interrupted = False
     for v in vocabs:
         for i in range(1, runs + 1):
+            if interrupted:
+                break
             run_out = out / Path(v).stem / f"run{i}"
             kw: dict[str, Any] = dict(common)
             if accepts_rerun and rerun_first is not None and not outcomes:
@@ -276,7 +282,13 @@ def run_comparison(
                 stats = json.loads(Path(report.paths["stats"]).read_text(encoding="utf-8"))
                 name = stats.get("dataset", {}).get("name", name)
                 threads = threads or stats.get("threads")
-                outcomes.append(outcome_from_stats(v, i, run_out, stats))
+                end = stats.get("end", {})
+                if stats.get("complete", True):
+                    outcomes.append(outcome_from_stats(v, i, run_out, stats))
+                else:
+                    error = f"ended early ({end.get('kind')}): {end.get('reason')}"
+                    outcomes.append(RunOutcome(v, i, str(run_out), ok=False, error=error))
+                    interrupted = end.get("kind") in ("interrupted", "terminated")
             except OrbslamError as exc:  # a failed run is reported in the table; the others go on
                 log.warning("vocabulary %s, run %d failed: %s", v, i, exc)
                 outcomes.append(RunOutcome(v, i, str(run_out), ok=False, error=str(exc)))
@@ -287,7 +299,7 @@ def run_comparison(
                 on_run(outcomes[-1])
     dataset = {"path": str(path), "kind": kind or "auto", "name": name, "max_frames": max_frames, "runs": runs,
                "config": str(config) if config else None, "threads": threads}
-    comp = Comparison(dataset, outcomes, summarise(outcomes, list(vocabs)))
+    comp = Comparison(dataset, outcomes, summarise(outcomes, list(vocabs)), interrupted=interrupted)
     md = format_markdown(comp)
     comp.paths = {"markdown": out / "compare.md", "json": out / "compare.json", "plot": out / "compare_ate.png"}
     comp.paths["markdown"].write_text(md, encoding="utf-8")

@@ -19,6 +19,7 @@ import numpy as np
 
 from orbslam_hgcn.childprocess import ChildProcess
 from orbslam_hgcn.config import ORBConfig
+from orbslam_hgcn.errors import StageError
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.geometry.camera import PinholeCamera
@@ -26,8 +27,10 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 log = logging.getLogger(__name__)
 
 
-class ExtractionError(RuntimeError):
-    """The extraction process failed or died; the message carries its traceback."""
+class ExtractionError(StageError):
+    """The extraction process failed or died (``lost``); the message carries its traceback."""
+
+    stage = "extraction process"
 
 
 def warm_up_extractors(extractors: Iterable[ORBExtractor], camera: PinholeCamera) -> None:

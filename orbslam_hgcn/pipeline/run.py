@@ -4,12 +4,20 @@ Writes into the output folder ``KeyFrameTrajectory.txt`` and ``CameraTrajectory.
 (TUM format, ``T_wc``, as ORB-SLAM writes them) and ``stats.json`` (frame counts, tracking
 events, per-stage timings and, when the dataset has ground truth, the ATE after Sim(3)
 alignment, Umeyama 1991, as monocular scale is unobservable).
+
+A run never loses what it computed: whatever ends it (an unreadable frame with
+``--on-bad-frame stop``, a worker thread or child process failing, Ctrl-C, SIGTERM, a bug)
+the results of the frames processed are written, ``stats.json`` says ``"complete": false``
+and why (``"end"``), and the command exits with the status of that ending
+(:data:`~orbslam_hgcn.pipeline.ending.EXIT_STATUS`). The output folder is checked before the first frame.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import time
+import traceback
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,9 +27,11 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from orbslam_hgcn.config import dataset_settings, load_camera, load_yaml, resolve_config
 from orbslam_hgcn.datasets import detect_kind, open_sequence
-from orbslam_hgcn.errors import OrbslamError, VocabularyError
+from orbslam_hgcn.errors import FrameError, OrbslamError, StageError, VocabularyError
 from orbslam_hgcn.geometry.camera import PinholeCamera
-from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.pipeline.ending import RunEnd
+from orbslam_hgcn.pipeline.results import check_output_file, check_output_folder
+from orbslam_hgcn.pipeline.system import TERMINATED, Configs, System
 from orbslam_hgcn.trajectory import Trajectory
 from orbslam_hgcn.viz.sinks import parse_rerun_arg
 
@@ -29,15 +39,29 @@ log = logging.getLogger(__name__)
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 
+def _first_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
+
 
 @dataclass
 class RunReport:
-    """What a run produced: output files, stats, ATE figures (None without ground truth)."""
+    """What a run produced: output files, stats, ATE figures (None without ground truth),
+    and how it ended."""
 
     paths: dict[str, Path]
     stats: dict[str, Any]
     ate: dict[str, Any] = field(default_factory=dict)
     interrupted: bool = False
+    end: RunEnd = field(default_factory=RunEnd)
+
+    @property
+    def complete(self) -> bool:
+        return self.end.complete
+
+    @property
+    def exit_status(self) -> int:
+        return self.end.exit_status
 
 
 def camera_from_config(path: str | Path | None) -> PinholeCamera | None:
@@ -107,8 +131,15 @@ def run_dataset(
     localization: bool = False,
     sequential: bool = False,
     speed: float | None = None,
+    on_bad_frame: str = "skip",
 ) -> RunReport:
     """Open a dataset, run the system over it, write the results into ``out``.
+
+    Bad input (arguments, config, dataset listing, an output folder that is a file or
+    cannot be written) raises an OrbslamError before the first frame. After that the run
+    always writes its results and returns; ``RunReport.end`` says how it ended (see the
+    module text). ``on_bad_frame``: ``skip`` (default) skips a frame whose image cannot be
+    read, with a warning, and counts it; ``stop`` ends the run on it.
 
     ``sequential``: local mapping and loop closing in order after each frame (reproducible
     results) instead of in worker threads. ``speed``: threaded runs take frames no faster
@@ -125,6 +156,11 @@ def run_dataset(
     write the map at the end (also listed in ``paths`` as ``map``).
     """
     rerun_sink = parse_rerun_arg(rerun) if rerun is not None else None
+    if on_bad_frame not in ("skip", "stop"):
+        raise OrbslamError(f"--on-bad-frame must be skip or stop, found {on_bad_frame!r}")
+    out = check_output_folder(out)
+    if save_map is not None:
+        save_map = check_output_file(save_map, "--save-map")
     if config is not None:
         config = resolve_config(config)  # a path, or a shipped camera name such as tum_fr3
     user_layer = load_yaml(config) if config is not None else {}
@@ -158,12 +194,31 @@ def run_dataset(
         from orbslam_hgcn.viz.live import attach_live_viz
 
         viz = attach_live_viz(system, *rerun_sink, out=out, config=config, name=sequence.name)
+    end, crash = RunEnd(), None
+    t_run = time.perf_counter()
     with logging_redirect_tqdm():
         try:
-            summary = system.run(sequence, max_frames, progress=progress)
+            summary = system.run(sequence, max_frames, progress=progress, on_bad_frame=on_bad_frame)
+            if summary.interrupted:
+                kind = "terminated" if summary.stop_reason == TERMINATED else "interrupted"
+                end = RunEnd(kind, summary.stop_reason or kind)
+        except FrameError as exc:
+            end = RunEnd("bad_frame", _first_line(exc), frame=exc.frame)
+        except StageError as exc:
+            end = RunEnd("stage_failed", _first_line(exc), stage=exc.stage)
+        except Exception as exc:  # noqa: BLE001 - a bug: the results so far are still written
+            crash = traceback.format_exc()
+            end = RunEnd("internal_error", f"{type(exc).__name__}: {_first_line(exc)}")
         finally:
             if viz is not None:
-                viz.finish(system)
+                try:
+                    viz.finish(system)
+                except Exception as exc:  # noqa: BLE001 - the run's own results come first
+                    log.warning("rerun recording not finished: %s", exc)
+    wall_s = time.perf_counter() - t_run
+    if not end.complete:
+        log.warning("the run ended early (%s): %s; writing the results of the frames processed", end.kind,
+                    end.reason)  # fmt: skip
     ate: dict[str, Any] = {}
     if sequence.ground_truth is not None and len(sequence.ground_truth) >= 3:
         ate = {
@@ -178,21 +233,35 @@ def run_dataset(
             "orb_features": configs.orb.n_features,
         },
         "vocabulary": repr(vocabulary) if vocabulary is not None else None,
-        "interrupted": summary.interrupted,
-        "wall_s": summary.wall_s,
+        "complete": end.complete,
+        "end": end.to_json(),
+        "interrupted": end.kind in ("interrupted", "terminated"),
+        "on_bad_frame": on_bad_frame,
+        "wall_s": wall_s,
         "ate_sim3": ate,
         "map_file": {"loaded": str(load_map) if load_map else None, "localization": localization},
     }
     if viz is not None:
         extra["rerun"] = viz.summary()
-    paths = system.save(out, extra)
+    try:
+        paths = system.save(out, extra)
+        if crash is not None:
+            paths["traceback"] = out / "traceback.txt"
+            paths["traceback"].write_text(crash, encoding="utf-8")
+    except OSError as exc:
+        raise OrbslamError(f"{out}: cannot write the results ({exc.strerror or exc})") from None
     if save_map is not None:
         from orbslam_hgcn.pipeline.mapfile import save_system_map
 
-        paths["map"] = save_system_map(save_map, system, vocab)
+        try:
+            paths["map"] = save_system_map(save_map, system, vocab)
+        except (OrbslamError, OSError) as exc:
+            if end.complete:
+                raise
+            log.warning("map not saved after the run ended early: %s", exc)
     stats = system.stats()
     stats.update(extra)
-    return RunReport(paths, stats, ate, summary.interrupted)
+    return RunReport(paths, stats, ate, extra["interrupted"], end)
 
 
 def format_report(report: RunReport) -> list[str]:
@@ -247,6 +316,14 @@ def format_report(report: RunReport) -> list[str]:
                 f"ATE Sim(3) ({name}, {a['pairs']} poses): rmse {100 * a['rmse_m']:.2f} cm, "
                 f"median {100 * a['median_m']:.2f} cm, max {100 * a['max_m']:.2f} cm"
             )
-    if report.interrupted:
-        lines.append("interrupted: results cover the frames processed so far")
+    if f.get("unreadable"):
+        skipped = " skipped" if s.get("on_bad_frame", "skip") == "skip" else ""
+        lines.append(f"WARNING: {f['unreadable']} unreadable frame(s){skipped} (listed in stats.json, bad_frames)")
+    lost = s.get("child_processes_lost", {})
+    if any(lost.values()):
+        lines.append("WARNING: child processes lost and replaced: "
+                     + ", ".join(f"{k} {v}" for k, v in lost.items() if v))  # fmt: skip
+    if not report.complete:
+        lines.append(f"ended early ({report.end.kind}: {report.end.reason}): results cover the frames processed "
+                     "so far")  # fmt: skip
     return lines

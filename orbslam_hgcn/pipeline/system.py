@@ -57,6 +57,7 @@ from orbslam_hgcn.config import (
 )
 from orbslam_hgcn.datasets import Sequence
 from orbslam_hgcn.datasets.base import FrameRecord
+from orbslam_hgcn.errors import ConfigError, DatasetError, FrameError, Terminated
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.geometry.camera import PinholeCamera
@@ -65,7 +66,7 @@ from orbslam_hgcn.map import Frame, KeyFrame, Map
 from orbslam_hgcn.map.atlas import Atlas
 from orbslam_hgcn.mapping.local_mapper import LocalMapper
 from orbslam_hgcn.match import matching, projection_search
-from orbslam_hgcn.pipeline.extraction import ExtractionProcess, warm_up_extractors
+from orbslam_hgcn.pipeline.extraction import ExtractionError, ExtractionProcess, warm_up_extractors
 from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
 from orbslam_hgcn.pipeline.results import (
     camera_trajectory,
@@ -81,6 +82,11 @@ from orbslam_hgcn.trajectory import Trajectory, write_tum
 from orbslam_hgcn.vocabulary.database import KeyframeDatabase
 
 log = logging.getLogger(__name__)
+
+INTERRUPTED = "interrupted (Ctrl-C)"  # RunSummary.stop_reason
+TERMINATED = "terminated (SIGTERM)"
+MAX_LOST_EXTRACTION = 3  # extraction processes a run may lose before it stops
+MAX_BAD_FRAMES_LISTED = 100  # unreadable frames listed one by one in the stats
 
 
 def warm_up_kernels() -> float:
@@ -189,12 +195,24 @@ class _Pacer:
         return self._anchor[0] + (timestamp - self._anchor[1]) / self.speed
 
 
+@dataclass(frozen=True)
+class Skipped:
+    """A frame of a run that was not processed: ``error`` None when it was dropped behind
+    the camera, else why its image could not be read."""
+
+    index: int
+    timestamp: float
+    error: DatasetError | None = None
+
+
 class _Prefetch:
     """Reads frames ahead of tracking and extracts the features of frame i + 1 while frame
     i is tracked (threaded mode of :meth:`System.run`).
 
     A reader thread decodes up to ``ahead`` frames in order (one reader: video files need
-    it); an error reading a frame is raised when that frame is taken. A frame's job starts
+    it). A frame that cannot be read (a DatasetError: missing, empty, corrupt, wrong size)
+    is handed on as such and the reader goes on; any other error reading a frame is raised
+    when that frame is taken, and ends the reading. A frame's job starts
     once the pacer hands it out. Extraction runs on a thread of its own, or in the system's
     extraction process when it has one. The extractor is chosen from the tracker's state
     when the job starts; if the state has changed when the frame is processed,
@@ -223,7 +241,7 @@ class _Prefetch:
         for i in range(self.n):
             try:
                 item: tuple[FrameRecord | None, BaseException | None] = (self.sequence[i], None)
-            except BaseException as exc:  # noqa: BLE001 - raised where the frame is taken
+            except BaseException as exc:  # noqa: BLE001 - raised or reported where the frame is taken
                 item = (None, exc)
             while not self._stop.is_set():
                 try:
@@ -231,11 +249,13 @@ class _Prefetch:
                     break
                 except queue.Full:
                     continue
-            if item[1] is not None or self._stop.is_set():
+            if (item[1] is not None and not isinstance(item[1], DatasetError)) or self._stop.is_set():
                 return
 
-    def _job(self, i: int) -> tuple[FrameRecord, Features]:
+    def _job(self, i: int) -> tuple[FrameRecord, Features] | Skipped:
         rec, exc = self._records.get()
+        if isinstance(exc, DatasetError):
+            return Skipped(i, float(self._timestamps[i]), exc)
         if exc is not None:
             raise exc
         self.pacer.wait(rec.timestamp)
@@ -244,21 +264,26 @@ class _Prefetch:
         kps = self.system._extract(rec.image, extractor, remote=True)
         return rec, Features(extractor, kps, t0, 1000.0 * (time.perf_counter() - t0))
 
-    def take(self, i: int) -> tuple[int, FrameRecord, Features, list[FrameRecord]]:
+    def take(self, i: int) -> tuple[int, FrameRecord | None, Features | None, list[Skipped]]:
         """The next frame to process, from position ``i`` on: its position, record and
-        features, and the frames dropped before it (see the class text); starts on the
-        frame after it."""
-        if self._next is not None and self._next[0] == i:
-            rec, features = self._next[1].result()
-        else:
-            rec, features = self._job(i)
-        dropped: list[FrameRecord] = []
-        while self.buffer_s > 0 and i + 1 < self.n and self.pacer.delivered(self._timestamps[i] + self.buffer_s):
-            dropped.append(rec)
+        features, and the frames skipped before it in order (dropped, see the class text,
+        or unreadable); starts on the frame after it. The record is None when frame ``i``
+        is unreadable: the caller decides whether to go on (:meth:`take` of ``i + 1``)."""
+        job = self._next[1].result() if self._next is not None and self._next[0] == i else self._job(i)
+        skipped: list[Skipped] = []
+        while True:
+            if isinstance(job, Skipped):
+                skipped.append(job)
+                self._next = (i + 1, self._pool.submit(self._job, i + 1)) if i + 1 < self.n else None
+                return i, None, None, skipped
+            rec, features = job
+            if not (self.buffer_s > 0 and i + 1 < self.n and self.pacer.delivered(self._timestamps[i] + self.buffer_s)):
+                break
+            skipped.append(Skipped(rec.index, rec.timestamp))
             i += 1
-            rec, features = self._job(i)
+            job = self._job(i)
         self._next = (i + 1, self._pool.submit(self._job, i + 1)) if i + 1 < self.n else None
-        return i, rec, features, dropped
+        return i, rec, features, skipped
 
     def close(self) -> None:
         self.pacer.halt.set()  # a job waiting for its frame's time goes on at once
@@ -277,11 +302,13 @@ class _Prefetch:
 
 @dataclass
 class RunSummary:
-    """Outcome of :meth:`System.run`: frames seen, whether it was interrupted."""
+    """Outcome of :meth:`System.run`: frames seen, whether it was interrupted (and how:
+    ``"interrupted (Ctrl-C)"``, ``"terminated (SIGTERM)"``; None when it was not)."""
 
     frames: int
     interrupted: bool
     wall_s: float
+    stop_reason: str | None = None
 
 
 class System:
@@ -344,6 +371,9 @@ class System:
         self.frame_started: list[float] = []
         self.events: list[dict[str, Any]] = []
         self.n_resets = 0
+        # Frames skipped because their image could not be read: {frame, t, error}.
+        self.bad_frames: list[dict[str, Any]] = []
+        self.n_extraction_lost = 0  # extraction processes that died during the run
         self._resume_by: float | None = None  # see run(): the latest a keyframe may hold the tracker
         # Called as observer(system, record, result) after every frame of :meth:`run`
         # (visualisation, progress reporting); they must not change the map.
@@ -417,7 +447,15 @@ class System:
             image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         if remote and self._extraction is not None:
             name = next(k for k, e in self._extractor_names.items() if e is extractor)
-            return self._extraction.extract(name, image)[0]
+            try:
+                return self._extraction.extract(name, image)[0]
+            except ExtractionError as exc:
+                # A process that died (killed, out of memory) is replaced by the next request;
+                # this frame is extracted here meanwhile. An error it reports is a bug: raised.
+                if not exc.lost or self.n_extraction_lost >= MAX_LOST_EXTRACTION:
+                    raise
+                self.n_extraction_lost += 1
+                log.warning("%s; extracting this frame here, the next ones in a new process", exc)
         return extractor.extract(image, self.camera)
 
     def process(
@@ -549,53 +587,76 @@ class System:
         self.events.append({"frame": frame_id, "t": timestamp, "event": event, "map": self.map.map_id})
 
     # --- a whole sequence ----------------------------------------------------------------
-    def run(self, sequence: Sequence, max_frames: int | None = None, progress: bool | None = None) -> RunSummary:
-        """Process the frames of ``sequence`` in order. Ctrl-C stops after the current
-        step; what exists is kept (``RunSummary.interrupted``). At the end (also after
-        Ctrl-C) the keyframes handed to the stages are finished and their threads joined;
-        on an error they are stopped and the error propagates."""
+    def run(
+        self, sequence: Sequence, max_frames: int | None = None, progress: bool | None = None,
+        on_bad_frame: str = "skip",
+    ) -> RunSummary:  # fmt: skip
+        """Process the frames of ``sequence`` in order.
+
+        A frame whose image cannot be read (missing, empty, truncated or corrupt file, wrong
+        size: a DatasetError of the reader) is skipped with a warning and recorded
+        (``on_bad_frame="skip"``: :attr:`bad_frames`, ``frames.unreadable`` in the stats)
+        or ends the run with a :class:`~orbslam_hgcn.errors.FrameError` (``"stop"``).
+        Ctrl-C (or :class:`~orbslam_hgcn.errors.Terminated`) stops after the current step;
+        what exists is kept (``RunSummary.interrupted``). At the end (also after Ctrl-C)
+        the keyframes handed to the stages are finished and their threads joined. On an
+        error every thread and child process is stopped and the error propagates; the map
+        and the tracker's records keep what was processed, so :meth:`save` still writes it.
+        """
+        if on_bad_frame not in ("skip", "stop"):
+            raise ConfigError(f"on_bad_frame must be skip or stop, found {on_bad_frame!r}")
         n = len(sequence) if max_frames is None else min(len(sequence), max_frames)
         show = self.configs.system.progress if progress is None else progress
         bar = tqdm(total=n, unit="frame", disable=not show, dynamic_ncols=True)
         t0 = time.perf_counter()
-        done, interrupted = 0, False
+        done, stop_reason = 0, None
         threads = self.configs.threads
         # Threaded runs take frames no faster than the camera would deliver them; sequential
         # runs give the same result at any pace.
         pacer = _Pacer(0.0 if self.sequential else threads.speed, threading.Event())
         prefetch = None
-        stages = self.stages  # threaded: worker threads and the local BA process start now
-        if not self.sequential and threads.prefetch:
-            if threads.extraction_process and self._extraction is None:
-                self._extraction = ExtractionProcess(
-                    {name: e.config for name, e in self._extractor_names.items()}, self.camera
-                )
-                # The frame on which the tracker's state changes is extracted again in this
-                # process (process()); load that extractor's kernels and build its pyramid
-                # tables here, while the child starts, rather than inside that frame.
-                warm = threading.Thread(
-                    target=warm_up_extractors, args=([self.extractor], self.camera), name="orbslam-warm", daemon=True
-                )
-                warm.start()
-                self._extraction.start()  # before the reader takes the first frame
-                warm.join()
-            prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=threads.frame_buffer_s)
-        if isinstance(stages, ThreadedStages):
-            stages.wait_ready()
         try:
+            stages = self.stages  # threaded: worker threads and the local BA process start now
+            if not self.sequential and threads.prefetch:
+                if threads.extraction_process and self._extraction is None:
+                    self._extraction = ExtractionProcess(
+                        {name: e.config for name, e in self._extractor_names.items()}, self.camera
+                    )
+                    # The frame on which the tracker's state changes is extracted again in this
+                    # process (process()); load that extractor's kernels and build its pyramid
+                    # tables here, while the child starts, rather than inside that frame.
+                    warm = threading.Thread(
+                        target=warm_up_extractors, args=([self.extractor], self.camera), name="orbslam-warm",
+                        daemon=True,
+                    )  # fmt: skip
+                    warm.start()
+                    try:
+                        self._extraction.start()  # before the reader takes the first frame
+                    finally:
+                        warm.join()
+                prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=threads.frame_buffer_s)
+            if isinstance(stages, ThreadedStages):
+                stages.wait_ready()
             i = 0
             while i < n:
-                dropped: list[FrameRecord] = []
                 if prefetch is not None:
-                    i, rec, features, dropped = prefetch.take(i)
+                    i, rec, features, skipped = prefetch.take(i)
                 else:
-                    rec, features = sequence[i], None
-                    pacer.wait(rec.timestamp)
+                    rec, features, skipped = self._read_frame(sequence, i), None, []
+                    if isinstance(rec, Skipped):
+                        rec, skipped = None, [rec]
+                    else:
+                        pacer.wait(rec.timestamp)
                 i += 1
-                for d in dropped:
-                    self.tracker.drop(d.index, d.timestamp)
+                for s in skipped:
                     done += 1
                     bar.update(1)
+                    if s.error is None:
+                        self.tracker.drop(s.index, s.timestamp)
+                    else:
+                        self._skip_unreadable(s, on_bad_frame)
+                if rec is None:
+                    continue
                 t_frame = time.perf_counter()
                 # A keyframe's mapping may hold the tracker (threads.sync_mapping_s), but not so
                 # long that the next frame would wait more than half the frame queue.
@@ -618,10 +679,15 @@ class System:
                         )  # fmt: skip
                     finally:
                         self.map.lock.release()
-        except KeyboardInterrupt:
-            interrupted = True
-            log.warning("interrupted after %d frames; saving what exists", done)
+        except KeyboardInterrupt as exc:
+            stop_reason = TERMINATED if isinstance(exc, Terminated) else INTERRUPTED
+            log.warning("%s after %d frames; saving what exists", stop_reason, done)
         except BaseException:
+            # The reader and the prefetch job first, so that no job starts a child process
+            # again while the stages stop.
+            if prefetch is not None:
+                prefetch.close()
+                prefetch = None
             bar.close()
             self._close_quietly()
             raise
@@ -631,10 +697,31 @@ class System:
         bar.close()
         try:
             self.close(drain=True)
-        except KeyboardInterrupt:  # a second Ctrl-C while the stages finish: stop them now
-            interrupted = True
+        except KeyboardInterrupt as exc:  # a second Ctrl-C while the stages finish: stop them now
+            stop_reason = stop_reason or (TERMINATED if isinstance(exc, Terminated) else INTERRUPTED)
             self._close_quietly()
-        return RunSummary(done, interrupted, time.perf_counter() - t0)
+        except BaseException:
+            self._close_quietly()
+            raise
+        return RunSummary(done, stop_reason is not None, time.perf_counter() - t0, stop_reason)
+
+    def _read_frame(self, sequence: Sequence, i: int) -> FrameRecord | Skipped:
+        """Frame ``i`` of ``sequence``, or a :class:`Skipped` saying why it cannot be read."""
+        try:
+            return sequence[i]
+        except DatasetError as exc:
+            return Skipped(i, float(sequence.timestamps[i]), exc)
+
+    def _skip_unreadable(self, s: Skipped, on_bad_frame: str) -> None:
+        """Record an unreadable frame (the tracking state is unchanged; the motion model
+        spans it as it spans a dropped frame), or stop the run on it."""
+        self.tracker.drop(s.index, s.timestamp, unreadable=True)
+        self.bad_frames.append({"frame": s.index, "t": s.timestamp, "error": str(s.error)})
+        if on_bad_frame == "stop":
+            raise FrameError(f"frame {s.index}: {s.error}", frame=s.index) from s.error
+        n = len(self.bad_frames)
+        if n <= 5 or n % 100 == 0:
+            log.warning("frame %d skipped (%d so far): %s", s.index, n, s.error)
 
     # --- results -------------------------------------------------------------------------
     def output_map(self) -> Map:
@@ -693,6 +780,10 @@ class System:
                 },
             },
             "mapping_counts": dict(self.mapper.counts),
+            "bad_frames": self.bad_frames[:MAX_BAD_FRAMES_LISTED],
+            "child_processes_lost": {
+                "extraction": self.n_extraction_lost, "local_ba": int(self.mapper.counts.get("ba_process_lost", 0)),
+            },
             "loop_closing": self.loop_closer.stats() if hasattr(self.loop_closer, "stats") else {},
             "relocalization": self.relocalizer.stats() if hasattr(self.relocalizer, "stats") else {},
         }

@@ -17,13 +17,16 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from orbslam_hgcn.errors import StageError
+
 log = logging.getLogger(__name__)
 
 _STOP = object()
 
 
-class WorkerError(RuntimeError):
-    """A stage raised inside its worker thread; ``__cause__`` holds the original exception."""
+class WorkerError(StageError):
+    """A stage raised inside its worker thread (``stage``: the worker's name); ``__cause__``
+    holds the original exception."""
 
 
 def _lower_thread_priority(nice: int) -> None:
@@ -90,7 +93,13 @@ class Worker:
     def check(self) -> None:
         """Re-raise, in the caller's thread, an exception the stage raised."""
         if self._error is not None:
-            raise WorkerError(f"{self.name} worker failed: {self._error!r}") from self._error
+            err = self._error
+            lines = str(err).splitlines()  # a child process's error carries its traceback
+            lost = isinstance(err, StageError) and err.lost
+            raise WorkerError(
+                f"{self.name} worker failed: {type(err).__name__}: {lines[0] if lines else ''}", stage=self.name,
+                lost=lost,
+            ) from err
 
     def stop(self, drain: bool = True) -> None:
         """Stop the thread and join it. With ``drain``, finish queued items first."""

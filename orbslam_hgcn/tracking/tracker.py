@@ -73,7 +73,8 @@ class PoseRecord:
     ref_kf_id: reference keyframe (-1: none); T_cr: (4, 4) pose relative to it
     (T_cw = T_cr @ T_rw), None when the frame has no pose; state: after tracking;
     generation: the map it refers to (a reset starts a new generation); dropped: the
-    frame was not processed because the system was behind its camera.
+    frame was not processed because the system was behind its camera; unreadable: the
+    frame was not processed because its image could not be read (and was skipped).
     """
 
     frame_id: int
@@ -83,6 +84,7 @@ class PoseRecord:
     state: TrackingState
     generation: int
     dropped: bool = False  # never processed: the system was behind its camera
+    unreadable: bool = False  # never processed: its image could not be read
 
 
 @dataclass
@@ -221,11 +223,13 @@ class Tracker:
         self._record(frame_id, timestamp, None)
         return TrackResult(None, self.state)
 
-    def drop(self, frame_id: int, timestamp: float) -> None:
+    def drop(self, frame_id: int, timestamp: float, unreadable: bool = False) -> None:
         """Record a frame the system dropped unprocessed, as a camera driver drops the frames
-        a busy reader misses; the tracking state is unchanged."""
+        a busy reader misses (or, with ``unreadable``, a frame whose image could not be
+        read); the tracking state is unchanged."""
         self._next_frame_id = frame_id + 1
-        self.records.append(PoseRecord(frame_id, timestamp, -1, None, self.state, self.generation, dropped=True))
+        self.records.append(PoseRecord(frame_id, timestamp, -1, None, self.state, self.generation,
+                                       dropped=not unreadable, unreadable=unreadable))  # fmt: skip
 
     def track(self, frame: Frame) -> TrackResult:
         """Track one frame (features extracted); returns what happened."""
