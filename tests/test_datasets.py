@@ -381,6 +381,72 @@ def test_video_round_trip(tmp_path):
     assert open_sequence("video", path, SMALL, fps=30.0)[2].timestamp == pytest.approx(2 / 30)
 
 
+def _panning_video(path, fourcc: str, n: int = 90) -> list[np.ndarray]:
+    """Write ``n`` frames (80x60 grey) of a window panning over a noise texture, with a
+    little jitter, as an inter-coded clip (mp4v, XVID) or an intra-only one (MJPG); returns
+    the frames written."""
+    rng = np.random.default_rng(0)
+    big = cv2.GaussianBlur(rng.integers(0, 256, (200, 400), dtype=np.uint8), (0, 0), 1.5)
+    frames = [big[50 + i % 7:110 + i % 7, 3 * i:3 * i + 80].copy() for i in range(n)]
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 30.0, (80, 60), True)
+    assert w.isOpened()
+    for fr in frames:
+        w.write(cv2.cvtColor(fr, cv2.COLOR_GRAY2BGR))
+    w.release()
+    return frames
+
+
+def _decoded(path) -> list[np.ndarray]:
+    """Every frame of a video decoded in order by a fresh decoder, grey."""
+    cap, out = cv2.VideoCapture(str(path)), []
+    while True:
+        ok, fr = cap.read()
+        if not ok:
+            return out
+        out.append(cv2.cvtColor(fr, cv2.COLOR_BGR2GRAY))
+
+
+@pytest.mark.parametrize("fourcc, suffix", [("mp4v", ".mp4"), ("XVID", ".avi")])
+def test_video_is_read_in_order_and_seeks_only_out_of_order(tmp_path, fourcc, suffix):
+    path = tmp_path / f"clip{suffix}"
+    written = _panning_video(path, fourcc)
+    ref = _decoded(path)
+    seq = open_sequence("video", path, SMALL)
+    assert len(seq) == len(ref) == len(written)
+    # Frame by frame, as a run takes them: no seek, the frames a decoder gives in order.
+    for i in range(len(seq)):
+        np.testing.assert_array_equal(seq[i].image, ref[i])
+    assert seq.seeks == 0
+    for i, fr in enumerate(ref):  # lossy, but each is nearest its own written frame
+        err = [np.abs(fr.astype(float) - w).mean() for w in written[max(0, i - 2):i + 3]]
+        assert int(np.argmin(err)) == min(i, 2) and err[min(i, 2)] < 6.0
+    # A few frames ahead: decoded through, still no seek; out of order: one seek each.
+    seq.close()
+    np.testing.assert_array_equal(seq[5].image, ref[5])
+    np.testing.assert_array_equal(seq[20].image, ref[20])
+    assert seq.seeks == 0
+    for i in (70, 12, 13, 40, 3):
+        np.testing.assert_array_equal(seq[i].image, ref[i])
+    assert seq.seeks == 3  # 70, 12 and 3; 13 follows 12, and 40 is decoded on to from 14
+    np.testing.assert_array_equal(np.stack([f.image for f in seq]), np.stack(ref))
+
+
+def test_video_frame_count_comes_from_the_stream_end(tmp_path):
+    path = tmp_path / "clip.avi"
+    _panning_video(path, "XVID")
+    data = path.read_bytes()
+    path.write_bytes(data[: int(0.8 * len(data))])  # the header still announces 90 frames
+    ref = _decoded(path)
+    assert 0 < len(ref) < 90
+    seq = open_sequence("video", path, SMALL)
+    assert len(seq) == 90
+    got = [f.image for f in seq]
+    assert len(got) == len(seq) == len(ref) and len(seq.timestamps) == len(ref)
+    np.testing.assert_array_equal(np.stack(got), np.stack(ref))
+    with pytest.raises(IndexError):
+        seq[len(ref)]
+
+
 def test_video_errors(tmp_path):
     with pytest.raises(DatasetError, match=r"none\.avi: video file not found"):
         open_sequence("video", tmp_path / "none.avi", SMALL)

@@ -21,6 +21,8 @@ from fault_fixtures import failing_extraction
 
 from orbslam_hgcn.backend.solver import ProcessSolver
 from orbslam_hgcn.cli import main
+from orbslam_hgcn.config import save_camera
+from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.mapping import local_mapper
 from orbslam_hgcn.mapping.local_mapper import LocalMapper
 from orbslam_hgcn.pipeline import system as system_module
@@ -221,6 +223,30 @@ def test_sigterm_ends_the_run_with_its_results(synth_replay_100, tmp_path, capsy
     assert code == 143 and len(err) == 1 and "SIGTERM" in err[0]
     assert stats["complete"] is False and stats["end"]["kind"] == "terminated" and stats["interrupted"] is True
     assert 0 < stats["frames"]["frames"] < 100 and stats["frames"]["tracked"] > 0
+
+
+def test_a_video_shorter_than_its_container_says_ends_the_run_cleanly(tmp_path):
+    """A truncated inter-coded video: the container announces 90 frames, the stream holds
+    fewer; the run ends at the stream's end, complete."""
+    rng = np.random.default_rng(1)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (400, 800), dtype=np.uint8), (0, 0), 2.0)
+    path = tmp_path / "clip.avi"
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"XVID"), 30.0, (320, 240), True)
+    for i in range(90):
+        w.write(cv2.cvtColor(texture[80:320, 2 * i:2 * i + 320], cv2.COLOR_GRAY2BGR))
+    w.release()
+    data = path.read_bytes()
+    path.write_bytes(data[: int(0.8 * len(data))])
+    camera = tmp_path / "camera.yaml"
+    save_camera(camera, PinholeCamera(300.0, 300.0, 160.0, 120.0, 320, 240, fps=30.0, name="clip"))
+    out = tmp_path / "out"
+    code = main(["run", str(path), "--config", str(camera), "--out", str(out), "--vocab", "none", "--no-loop",
+                 "--no-progress"])  # fmt: skip
+    stats = json.loads((out / "stats.json").read_text())
+    _nothing_left()
+    assert code == 0 and stats["complete"] is True
+    assert 50 < stats["frames"]["frames"] == stats["dataset"]["frames"] < 90
+    assert stats["frames"]["unreadable"] == 0
 
 
 def test_out_is_checked_before_the_first_frame(synth_replay_100, tmp_path, capsys):

@@ -45,6 +45,12 @@ class FrameRecord:
     T_wc: np.ndarray | None
 
 
+class SequenceEnded(IndexError):
+    """A reader was asked for a frame at or past the end of its sequence, an end found only
+    while reading (a video whose container announced more frames than its stream holds):
+    the sequence ends there, and its ``len`` is the true count from then on."""
+
+
 class Sequence(abc.ABC):
     """A finite, ordered, re-iterable sequence of :class:`FrameRecord`.
 

@@ -56,7 +56,7 @@ from orbslam_hgcn.config import (
     section_from_yaml,
 )
 from orbslam_hgcn.datasets import Sequence
-from orbslam_hgcn.datasets.base import FrameRecord
+from orbslam_hgcn.datasets.base import FrameRecord, SequenceEnded
 from orbslam_hgcn.errors import ConfigError, DatasetError, FrameError, Terminated
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.features.orb import ORBExtractor
@@ -257,7 +257,7 @@ class _Prefetch:
         if isinstance(exc, DatasetError):
             return Skipped(i, float(self._timestamps[i]), exc)
         if exc is not None:
-            raise exc
+            raise exc  # SequenceEnded: the sequence ends before its announced length
         self.pacer.wait(rec.timestamp)
         extractor = self.system._extractor_now()
         t0 = time.perf_counter()
@@ -268,7 +268,8 @@ class _Prefetch:
         """The next frame to process, from position ``i`` on: its position, record and
         features, and the frames skipped before it in order (dropped, see the class text,
         or unreadable); starts on the frame after it. The record is None when frame ``i``
-        is unreadable: the caller decides whether to go on (:meth:`take` of ``i + 1``)."""
+        is unreadable: the caller decides whether to go on (:meth:`take` of ``i + 1``).
+        Raises SequenceEnded when the sequence ends before ``i``."""
         job = self._next[1].result() if self._next is not None and self._next[0] == i else self._job(i)
         skipped: list[Skipped] = []
         while True:
@@ -637,16 +638,21 @@ class System:
                 prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=threads.frame_buffer_s)
             if isinstance(stages, ThreadedStages):
                 stages.wait_ready()
+            stamps = np.asarray(sequence.timestamps, dtype=np.float64)  # as announced
             i = 0
             while i < n:
-                if prefetch is not None:
-                    i, rec, features, skipped = prefetch.take(i)
-                else:
-                    rec, features, skipped = self._read_frame(sequence, i), None, []
-                    if isinstance(rec, Skipped):
-                        rec, skipped = None, [rec]
+                try:
+                    if prefetch is not None:
+                        i, rec, features, skipped = prefetch.take(i)
                     else:
-                        pacer.wait(rec.timestamp)
+                        rec, features, skipped = self._read_frame(sequence, i, stamps), None, []
+                        if isinstance(rec, Skipped):
+                            rec, skipped = None, [rec]
+                        else:
+                            pacer.wait(rec.timestamp)
+                except SequenceEnded as exc:
+                    log.info("the sequence ends at frame %d: %s", i, exc)
+                    break
                 i += 1
                 for s in skipped:
                     done += 1
@@ -660,7 +666,7 @@ class System:
                 t_frame = time.perf_counter()
                 # A keyframe's mapping may hold the tracker (threads.sync_mapping_s), but not so
                 # long that the next frame would wait more than half the frame queue.
-                due = pacer.due(float(sequence.timestamps[i])) if i < n else None
+                due = pacer.due(float(stamps[i])) if i < n else None
                 self._resume_by = None if due is None else due + 0.5 * threads.frame_buffer_s
                 result = self.process(rec.image, rec.timestamp, rec.index, features)
                 if self.observers:
@@ -705,12 +711,13 @@ class System:
             raise
         return RunSummary(done, stop_reason is not None, time.perf_counter() - t0, stop_reason)
 
-    def _read_frame(self, sequence: Sequence, i: int) -> FrameRecord | Skipped:
-        """Frame ``i`` of ``sequence``, or a :class:`Skipped` saying why it cannot be read."""
+    def _read_frame(self, sequence: Sequence, i: int, stamps: np.ndarray) -> FrameRecord | Skipped:
+        """Frame ``i`` of ``sequence``, or a :class:`Skipped` saying why it cannot be read
+        (``stamps``: the sequence's timestamps). Raises SequenceEnded at its end."""
         try:
             return sequence[i]
         except DatasetError as exc:
-            return Skipped(i, float(sequence.timestamps[i]), exc)
+            return Skipped(i, float(stamps[i]), exc)
 
     def _skip_unreadable(self, s: Skipped, on_bad_frame: str) -> None:
         """Record an unreadable frame (the tracking state is unchanged; the motion model
