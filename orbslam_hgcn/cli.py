@@ -529,6 +529,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--runs", type=int, default=1, help="runs per vocabulary (default 1)")
     p.add_argument("--cache", default=None,
                    help="cache folder of rendered sequences (default $ORBSLAM_HGCN_CACHE or ~/.cache/orbslam_hgcn)")
+    p.add_argument("--force", action="store_true", help="render the sequence again even when the cache holds it")
     add_rerun_argument(p)
     p.add_argument("--no-rerun", action="store_true", help="record no rerun visualisation")
     _add_sequential_argument(p)
@@ -542,5 +543,7 @@ def _run_demo(args: argparse.Namespace) -> int:
     rerun = [] if args.no_rerun else args.rerun
     comp = run_demo(out=args.out, frames=args.frames, runs=args.runs, cache=args.cache, rerun=rerun,
                     progress=not args.no_progress, sequential=args.sequential,
-                    speed=args.speed)
+                    speed=args.speed, force=args.force)
+    if comp.interrupted:
+        return 130
     return 1 if any(not r.ok for r in comp.runs) else 0

@@ -8,6 +8,7 @@ import pytest
 
 from orbslam_hgcn.cli import main
 from orbslam_hgcn.config import load_camera
+from orbslam_hgcn.errors import DatasetError
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import rotation_angle_deg
 from orbslam_hgcn.synth.layout import DeskSpec
@@ -306,6 +307,68 @@ def test_cli_caches_refuses_and_forces(tmp_path, capsys):
     assert "not empty" in capsys.readouterr().err
     assert main(args + ["--noise", "1", "--force"]) == 0
     assert main(["synth", "--out", str(tmp_path / "x"), "--trajectory", "replay", "--gt", str(tmp_path / "no.txt")]) == 2
+
+
+def test_an_interrupted_render_leaves_the_output_folder_as_it_was(tmp_path, monkeypatch):
+    from orbslam_hgcn.synth import sequence
+
+    opts = SynthOptions(frames=4, texel_scale=8.0)
+    out = tmp_path / "seq"
+    frame = sequence.camera_frame
+
+    def interrupted(renderer, poses, t, k, *args):
+        if k == 2:
+            raise KeyboardInterrupt
+        return frame(renderer, poses, t, k, *args)
+
+    monkeypatch.setattr(sequence, "camera_frame", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        render_sequence(out, opts, progress=False)
+    assert not out.exists() and list(tmp_path.iterdir()) == []  # nor a temporary folder
+    # A render killed outright leaves its temporary folder: the next render removes it.
+    stale = tmp_path / ".seq.partial-999999999"
+    (stale / "rgb").mkdir(parents=True)
+    monkeypatch.setattr(sequence, "camera_frame", frame)
+    assert render_sequence(out, opts, progress=False) == out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]
+    assert len(list((out / "rgb").glob("*.png"))) == 4 and (out / "scene.json").is_file()
+
+
+def test_a_half_written_render_is_made_again_and_user_files_are_kept(tmp_path, capsys):
+    """A render cut short by an older version (frames, no scene.json) is replaced without
+    --force; --force replaces a complete other sequence and keeps the user's own files."""
+    opts = SynthOptions(frames=3, texel_scale=8.0)
+    out = tmp_path / "seq"
+    (out / "rgb").mkdir(parents=True)
+    (out / "rgb" / "0.000000.png").write_bytes(b"half")
+    (out / "rgb.txt").write_text("# half\n")
+    assert render_sequence(out, opts, progress=False) == out
+    assert len(list((out / "rgb").glob("*.png"))) == 3 and (out / "rgb" / "0.000000.png").read_bytes() != b"half"
+    (out / "notes.txt").write_text("mine")
+    other = SynthOptions(frames=2, texel_scale=8.0)
+    with pytest.raises(DatasetError, match="not empty"):
+        render_sequence(out, other, progress=False)
+    render_sequence(out, other, force=True, progress=False)
+    assert len(list((out / "rgb").glob("*.png"))) == 2 and (out / "notes.txt").read_text() == "mine"
+    assert [p.name for p in tmp_path.iterdir()] == ["seq"]
+
+
+def test_demo_cache_recovers_from_an_interrupted_render_and_force_renders_again(tmp_path, monkeypatch):
+    from orbslam_hgcn.pipeline.demo import demo_sequence
+
+    cache = tmp_path / "cache"
+    folder = cache / "loop_3frames"
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "rgb" / "1.png").write_bytes(b"")  # an interrupted render of an older version
+    (cache / ".loop_3frames.partial-999999999").mkdir()  # and one killed outright
+    seq = demo_sequence(cache, frames=3, progress=False)
+    assert seq == folder and len(list((folder / "rgb").glob("*.png"))) == 3
+    assert [p.name for p in cache.iterdir()] == ["loop_3frames"]
+    stamp = (folder / "scene.json").stat().st_mtime_ns
+    assert demo_sequence(cache, frames=3, progress=False) == folder
+    assert (folder / "scene.json").stat().st_mtime_ns == stamp  # kept
+    demo_sequence(cache, frames=3, progress=False, force=True)
+    assert (folder / "scene.json").stat().st_mtime_ns != stamp  # rendered again
 
 
 def test_camera_effects_blur_noise_and_drift():

@@ -2,7 +2,8 @@
 
 :func:`run_demo` renders the synthetic loop round a desk (``orbslam-hgcn synth`` with its
 defaults: 30 s, 900 frames, TUM fr3 camera, exact ground truth) into a cache folder, kept
-and reused afterwards; runs the system with loop closing, first with the shipped HGCN
+and reused afterwards (written atomically: a render interrupted on the first use is
+simply made again on the next); runs the system with loop closing, first with the shipped HGCN
 vocabulary and then with the shipped ORB tree, printing each run's ATE as it ends; and
 prints the comparison (:mod:`orbslam_hgcn.pipeline.compare`). The first run is recorded
 for rerun (``OUT/demo.rrd`` by default).
@@ -29,19 +30,23 @@ def default_cache() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "orbslam_hgcn"
 
 
-def demo_sequence(cache: str | Path | None = None, frames: int | None = None, progress: bool = True) -> Path:
+def demo_sequence(
+    cache: str | Path | None = None, frames: int | None = None, progress: bool = True, force: bool = False
+) -> Path:
     """The demo sequence, rendered on first use: ``CACHE/loop_default`` (900 frames), or
     ``CACHE/loop_<N>frames`` for a loop of ``frames`` frames (300 or more make a full lap;
-    fewer are the start of a 10 s lap)."""
+    fewer are the start of a 10 s lap). The folder is the demo's own: whatever else it
+    holds (an older render, files of an interrupted one) is replaced; ``force`` renders it
+    again even when it holds the sequence."""
     from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 
     if frames is not None and frames < 1:
         raise ConfigError(f"--frames must be at least 1, found {frames}")
     root = Path(cache) if cache is not None else default_cache()
     folder = root / ("loop_default" if frames is None else f"loop_{frames}frames")
-    reuse = (folder / "scene.json").is_file()
+    reuse = (folder / "scene.json").is_file() and not force
     log.info("%s the demo sequence in %s", "checking" if reuse else "rendering (once)", folder)
-    return render_sequence(folder, SynthOptions(frames=frames), progress=progress)
+    return render_sequence(folder, SynthOptions(frames=frames), force=force, progress=progress, cache=True)
 
 
 def run_demo(
@@ -54,6 +59,7 @@ def run_demo(
     sequential: bool = False,
     speed: float | None = None,
     echo: Callable[[str], None] = print,
+    force: bool = False,
 ) -> Comparison:
     """Render (or reuse) the demo sequence, run HGCN then ORB ``runs`` times each, print
     every run's figures and the comparison through ``echo``; write everything under ``out``.
@@ -61,9 +67,10 @@ def run_demo(
     rerun: ``--rerun`` tokens for the first run; None records ``OUT/demo.rrd``; an empty
     sequence records nothing. sequential: run the stages in order instead of in threads.
     speed: how fast threaded runs take frames, relative to the sequence's 30 Hz (None: 1).
+    force: render the sequence again even when the cache holds it.
     """
     out = Path(out)
-    seq = demo_sequence(cache, frames, progress)
+    seq = demo_sequence(cache, frames, progress, force)
     echo(f"sequence: {seq}")
     tokens = ["save", str(out / "demo.rrd")] if rerun is None else list(rerun)
 

@@ -1,11 +1,22 @@
-"""Writers of rendered sequences: the TUM RGB-D layout and the KITTI odometry layout.
+"""Writers of rendered sequences: the TUM RGB-D layout and the KITTI odometry layout, and
+the folder they write into.
 
 A writer takes the frames one by one (``frame``), then the ground truth (``finish``);
 ``complete(out)`` says whether a folder already holds every frame it lists.
+
+A sequence is rendered into a temporary folder beside its output folder
+(:func:`partial_folder`, ``.NAME.partial-PID``) and moved into place only once complete
+(:func:`install`), so an output folder never holds a half-written sequence: a render that
+is interrupted leaves only its temporary folder, which the next render of that folder
+removes (:func:`remove_stale_partials`) once the process that made it has ended.
 """
 
 from __future__ import annotations
 
+import json
+import logging
+import os
+import shutil
 from pathlib import Path
 
 import cv2
@@ -15,6 +26,12 @@ from orbslam_hgcn.errors import ConfigError, DatasetError
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import inv_T
 from orbslam_hgcn.trajectory import Trajectory, write_tum
+
+log = logging.getLogger(__name__)
+
+# Every file and folder a render writes into its output folder (either layout).
+OUTPUTS = ("rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.yaml", "scene.json", "loop_gt.npy",
+           "sequences", "poses")
 
 # zlib level 1 with run-length matching: ~25 % faster than plain level 1 and ~10 % smaller
 # on these frames (measured with OpenCV 5.0).
@@ -127,3 +144,84 @@ def make_writer(layout: str, out: Path, stamps: np.ndarray, depth: bool, sequenc
 
 def writer_class(layout: str):
     return KittiWriter if layout == "kitti" else TumWriter
+
+
+def existing_render(out: Path, meta_options: dict, writer=TumWriter, sequence: int = 0) -> str:
+    """What the folder ``out`` holds: ``"empty"`` (missing or empty), ``"same"`` (this very
+    sequence, every frame present), ``"incomplete"`` (nothing but a render's files, and no
+    complete sequence: a render interrupted before renders were made atomic) or ``"other"``
+    (another sequence, or files of the user's)."""
+    if not out.exists() or (out.is_dir() and not any(out.iterdir())):
+        return "empty"
+    if not out.is_dir():
+        return "other"
+    meta = out / "scene.json"
+    old = None
+    if meta.is_file():
+        try:
+            old = json.loads(meta.read_text(encoding="utf-8")).get("options")
+        except (OSError, json.JSONDecodeError, AttributeError):
+            old = None
+    complete = old is not None and writer.complete(out, sequence)
+    if complete and old == meta_options:
+        return "same"
+    if not complete and all(p.name in OUTPUTS for p in out.iterdir()):
+        return "incomplete"
+    return "other"
+
+
+def partial_folder(out: Path) -> Path:
+    """The temporary folder this process renders ``out`` into (beside it, so that the
+    final rename stays on one file system)."""
+    return out.parent / f".{out.name}.partial-{os.getpid()}"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_stale_partials(out: Path) -> None:
+    """Remove the temporary folders of renders of ``out`` whose process has ended (killed,
+    or the machine stopped) and this process's own."""
+    if not out.parent.is_dir():
+        return
+    for p in out.parent.glob(f".{out.name}.partial-*"):
+        try:
+            pid = int(p.name.rsplit("-", 1)[1])
+        except ValueError:
+            continue
+        if pid == os.getpid() or not _alive(pid):
+            log.info("removing %s, left by an interrupted render", p)
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def clear_outputs(out: Path) -> None:
+    """Remove a render's files from ``out``, leaving any other file there."""
+    for name in OUTPUTS:
+        p = out / name
+        if p.is_dir():
+            shutil.rmtree(p)
+        elif p.exists():
+            p.unlink()
+
+
+def install(partial: Path, out: Path) -> None:
+    """Move a complete render from ``partial`` to ``out``: one rename when ``out`` is
+    missing or empty; otherwise the render's files in ``out`` are replaced entry by entry
+    (its other files stay)."""
+    if out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
+    if not out.exists():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(partial, out)
+        return
+    clear_outputs(out)
+    for p in sorted(partial.iterdir(), key=lambda q: q.name == "scene.json"):  # scene.json last
+        os.replace(p, out / p.name)
+    partial.rmdir()

@@ -49,7 +49,14 @@ from orbslam_hgcn.errors import ConfigError, DatasetError
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.synth.degrade import Degradations, flow_blur
 from orbslam_hgcn.synth.layout import DeskSpec, build_scene
-from orbslam_hgcn.synth.output import PNG_PARAMS, TumWriter, make_writer, writer_class  # noqa: F401
+from orbslam_hgcn.synth.output import (
+    existing_render,
+    install,
+    make_writer,
+    partial_folder,
+    remove_stale_partials,
+    writer_class,
+)
 from orbslam_hgcn.synth.render import SceneRenderer
 from orbslam_hgcn.synth.trajectory import LoopPath, ReplayPath, fit_scene_to_trajectory, loop_ground_truth
 from orbslam_hgcn.trajectory import read_tum
@@ -57,8 +64,6 @@ from orbslam_hgcn.trajectory import read_tum
 log = logging.getLogger(__name__)
 
 MIN_LOOP_S = 10.0  # shortest loop period (s): faster would not be a hand-held walk
-_OUTPUTS = ("rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.yaml", "scene.json", "loop_gt.npy",
-            "sequences", "poses")
 # KITTI odometry sequence 00's camera P0 (Geiger et al., CVPR 2012; configs/kitti_00-02.yaml).
 KITTI_CAMERA = {"fx": 718.856, "fy": 718.856, "cx": 607.1928, "cy": 185.2157, "width": 1241, "height": 376,
                 "fps": 10.0}
@@ -347,28 +352,6 @@ def _image_motion(cam: PinholeCamera, inv_depth: np.ndarray, T_wc: np.ndarray, e
     return float(np.linalg.norm(uv[1] - uv[0], axis=1).max())
 
 
-def _prepare_out(out: Path, meta_options: dict, force: bool, writer=TumWriter, sequence: int = 0) -> bool:
-    """True when ``out`` already holds this very sequence; clears it under ``force``."""
-    meta = out / "scene.json"
-    if meta.is_file() and not force:
-        try:
-            old = json.loads(meta.read_text(encoding="utf-8")).get("options")
-        except (OSError, json.JSONDecodeError):
-            old = None
-        if old == meta_options and writer.complete(out, sequence):
-            return True
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise DatasetError(f"{out}: output folder is not empty (use --force to overwrite)")
-        for name in _OUTPUTS:
-            p = out / name
-            if p.is_dir():
-                shutil.rmtree(p)
-            elif p.exists():
-                p.unlink()
-    return False
-
-
 def _json_default(x):
     if isinstance(x, np.generic):
         return x.item()
@@ -388,21 +371,53 @@ def _meta_options(options: SynthOptions) -> dict:
 
 
 def render_sequence(out_dir: str | Path, options: SynthOptions = SynthOptions(), force: bool = False,
-                    progress: bool = True) -> Path:
+                    progress: bool = True, cache: bool = False) -> Path:
     """Render a synthetic sequence into ``out_dir`` (see the module docstring).
 
     Returns the folder to read it from: ``out_dir`` (TUM layout) or
     ``out_dir/sequences/NN`` (KITTI layout). An ``out_dir`` that already holds the same
-    sequence (same options, all frames present) is kept as it is; any other non-empty
-    folder is refused unless ``force``.
+    sequence (same options, all frames present) is kept as it is, unless ``force``; one
+    that holds only an interrupted render's files is replaced; any other non-empty folder
+    is refused unless ``force`` (which replaces the render's files and keeps any other) or
+    ``cache`` (a folder this caller owns: whatever it holds is replaced by this sequence).
+
+    The frames are written into a temporary folder beside ``out_dir`` and moved into it
+    once complete (:func:`~orbslam_hgcn.synth.output.install`): an interrupted render
+    leaves ``out_dir`` as it was.
     """
     options.validate()
     out = Path(out_dir)
     meta_options = _meta_options(options)
     writer_cls = writer_class(options.layout)
-    if _prepare_out(out, meta_options, force, writer_cls, options.kitti_sequence):
+    found = existing_render(out, meta_options, writer_cls, options.kitti_sequence)
+    seq_dir = Path("sequences") / f"{options.kitti_sequence:02d}" if options.layout == "kitti" else Path()
+    if found == "same" and not force:
         log.info("%s already holds this sequence; nothing to do", out)
-        return out / "sequences" / f"{options.kitti_sequence:02d}" if options.layout == "kitti" else out
+        return out / seq_dir
+    if found == "other" and not (force or cache):
+        raise DatasetError(f"{out}: output folder is not empty (use --force to overwrite)")
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"{out}: output path is a file, not a folder")
+    if found == "incomplete":
+        log.warning("%s holds an incomplete render (interrupted); rendering it again", out)
+    remove_stale_partials(out)
+    partial = partial_folder(out)
+    partial.mkdir(parents=True)
+    try:
+        n = _render_into(partial, options, meta_options, progress)
+        if cache and found == "other":
+            shutil.rmtree(out)
+        install(partial, out)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    log.info("wrote %d frames to %s", n, out)
+    return out / seq_dir
+
+
+def _render_into(out: Path, options: SynthOptions, meta_options: dict, progress: bool) -> int:
+    """Render every frame and file of a sequence into the folder ``out``, scene.json last;
+    returns the number of frames."""
     cam = options.camera
     scene, poses, stamps, traj_info = build_sequence(options)
     renderer = make_renderer(scene, options, progress)
@@ -422,5 +437,4 @@ def render_sequence(out_dir: str | Path, options: SynthOptions = SynthOptions(),
     if options.layout == "kitti":
         meta["T_world_first_camera"] = gt_poses[0]  # KITTI poses are relative to the first camera
     (out / "scene.json").write_text(json.dumps(meta, indent=1, default=_json_default), encoding="utf-8")
-    log.info("wrote %d frames to %s", len(stamps), out)
-    return writer.dataset_dir
+    return len(stamps)
