@@ -501,7 +501,7 @@ def median_row(rows: list[dict[str, Any]], system: str) -> dict[str, Any] | None
 
 def ours_features(args: argparse.Namespace) -> int | None:
     """ORB features per image that ``orbslam-hgcn run`` will use (its --config's orb section)."""
-    from orbslam_hgcn.config import CONFIG_DIR
+    from orbslam_hgcn.config import resolve_config
     from orbslam_hgcn.errors import OrbslamError
     from orbslam_hgcn.pipeline.system import Configs
 
@@ -512,8 +512,8 @@ def ours_features(args: argparse.Namespace) -> int | None:
             config = extra[i + 1]
         elif tok.startswith("--config="):
             config = tok.split("=", 1)[1]
-    if config is not None and not Path(config).is_file() and (CONFIG_DIR / f"{config}.yaml").is_file():
-        config = str(CONFIG_DIR / f"{config}.yaml")
+    if config is not None:
+        config = resolve_config(config)  # a file, or a shipped camera name
     try:
         return Configs.from_yaml(config).orb.n_features
     except OrbslamError:
