@@ -41,7 +41,6 @@ stretch without a pose.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import multiprocessing as mp
