@@ -343,8 +343,8 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
                    "local_mapping, backend, map, system); a shipped camera name such as tum_fr3")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--no-loop", action="store_true", help="run without loop closing")
-    p.add_argument("--vocab", default=None, metavar="orb|hgcn|FILE|none",
-                   help="visual vocabulary: the shipped orb or hgcn one, a vocabulary file, or none "
+    p.add_argument("--vocab", default=None, metavar="orb|hgcn|kmeans|orb10k|FILE|none",
+                   help="visual vocabulary: a shipped one (orb, hgcn, kmeans, orb10k), a vocabulary file, or none "
                    "(default hgcn; needed for loop closing and relocalisation)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
     p.add_argument("--on-bad-frame", choices=("skip", "stop"), default="skip",
@@ -395,21 +395,23 @@ def _run_run(args: argparse.Namespace) -> int:
 
 @subcommand
 def _add_vocab(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("vocab", help="train, inspect or export a visual vocabulary (HGCN or DBoW2-style ORB tree)")
+    p = sub.add_parser("vocab", help="train, inspect or export a visual vocabulary (HGCN, k-means or DBoW2-style ORB tree)")
     vsub = p.add_subparsers(dest="vocab_command", metavar="ACTION", required=True)
     t = vsub.add_parser("train", help="train a vocabulary from images")
-    t.add_argument("--kind", choices=("hgcn", "orb"), required=True, help="vocabulary kind")
+    t.add_argument("--kind", choices=("hgcn", "orb", "kmeans"), required=True,
+                   help="vocabulary kind (kmeans: the HGCN vocabulary's PCA and seed k-means without the network)")
     t.add_argument("--images", nargs="+", required=True,
                    help="image sources: TUM/EuRoC/KITTI sequence folders, image folders or image files")
     t.add_argument("--words", type=int, default=None,
-                   help="word count (hgcn: exactly, default 8000; orb: sets the depth L = round(log_k words))")
+                   help="word count (hgcn, kmeans: exactly, default 8000; orb: sets the depth L = round(log_k words))")
     t.add_argument("--out", required=True, help="output vocabulary file (.npz)")
     t.add_argument("--max-images", type=int, default=None, help="use at most this many images, evenly spread")
     t.add_argument("--features", type=int, default=1000, help="ORB features per image (default 1000)")
     t.add_argument("--levels", type=int, default=None, help="orb: tree depth L (default 5)")
     t.add_argument("--branching", type=int, default=None, help="orb: children per node k (default 10)")
     t.add_argument("--label-fraction", type=float, default=None, help="hgcn: fraction of seeded nodes (0.1)")
-    t.add_argument("--epochs", type=float, default=None, help="hgcn: passes over the seeded nodes (2)")
+    t.add_argument("--epochs", type=int, default=None,
+                   help="hgcn: full-batch epochs at most (60; training stops earlier on held-out seeds)")
     t.add_argument("--config", default=None,
                    help="YAML with 'hgcn:' / 'vocab_tree:' sections overriding training parameters")
     t.add_argument("--trained-on", default=None, help="description of the imagery kept in the metadata")
@@ -419,7 +421,7 @@ def _add_vocab(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--keep-cache", action="store_true", help="keep the descriptor cache <out>.descriptors.npz")
     t.set_defaults(func=_run_vocab_train)
     i = vsub.add_parser("info", help="print a vocabulary's metadata")
-    i.add_argument("file", help="vocabulary file, or 'orb' / 'hgcn' for the shipped default")
+    i.add_argument("file", help="vocabulary file, or a shipped one: 'orb', 'hgcn', 'kmeans', 'orb10k'")
     i.set_defaults(func=_run_vocab_info)
     e = vsub.add_parser("export", help="write an ORB-tree vocabulary as a DBoW2 text file (ORB-SLAM2/3's ORBvoc.txt)")
     e.add_argument("file", help="ORB-tree vocabulary file, or 'orb' for the shipped default")
@@ -446,7 +448,7 @@ def _run_vocab_train(args: argparse.Namespace) -> int:
         hgcn = dataclasses.replace(hgcn, label_fraction=args.label_fraction)
     if args.epochs is not None:
         hgcn = dataclasses.replace(hgcn, epochs=args.epochs)
-    words = args.words if (args.kind == "hgcn" or args.levels is None) else None
+    words = args.words if (args.kind != "orb" or args.levels is None) else None
     vocab = train_from_images(
         args.kind, args.images, args.out, words=words, max_images=args.max_images, n_features=args.features,
         tree=tree, hgcn=hgcn, trained_on=args.trained_on, tracks=not args.no_tracks, keep_cache=args.keep_cache,
@@ -487,7 +489,7 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="camera/stage YAML or a shipped camera name, as for run")
     p.add_argument("--runs", type=int, default=5, help="runs per vocabulary (default 5)")
     p.add_argument("--vocabs", nargs="+", default=["orb", "hgcn"], metavar="VOCAB",
-                   help="vocabularies to compare: orb, hgcn or files (default: orb hgcn)")
+                   help="vocabularies to compare: orb, hgcn, kmeans, orb10k or files (default: orb hgcn)")
     p.add_argument("--out", required=True, help="output folder (one sub-folder per run)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames per run")
     _add_sequential_argument(p)

@@ -403,7 +403,7 @@ class VocabularyConfig:
     2015, sections III-E and VI: DBoW2 vectors, FeatureVector 4 levels above the words, loop
     candidates sharing > 0.8 x the most common words, kept above 0.75 x the best group score)."""
 
-    kind: str = "hgcn"  # "hgcn" (the paper's vocabulary) or "orb" (DBoW2 tree baseline)
+    kind: str = "hgcn"  # "hgcn" (the paper's vocabulary), "orb" (DBoW2 tree) or "kmeans" (flat k-means)
     path: str = ""  # vocabulary file; "" = the shipped default of `kind`
     levels_up: int = 4  # FeatureVector nodes this many levels above the words (HGCN: coarse nodes)
     min_common_words_ratio: float = 0.8  # candidates share more than this x the most common words
@@ -411,8 +411,8 @@ class VocabularyConfig:
     n_covisible: int = 10  # best covisible keyframes whose scores form a candidate's group
 
     def __post_init__(self) -> None:
-        if self.kind not in ("hgcn", "orb"):
-            raise ConfigError(f"vocabulary.kind: must be 'hgcn' or 'orb', found {self.kind!r}")
+        if self.kind not in ("hgcn", "orb", "kmeans"):
+            raise ConfigError(f"vocabulary.kind: must be 'hgcn', 'orb' or 'kmeans', found {self.kind!r}")
         if self.levels_up < 0:
             raise ConfigError(f"vocabulary.levels_up: must be >= 0, found {self.levels_up!r}")
         for key in ("min_common_words_ratio", "retain_score_ratio"):
@@ -435,7 +435,9 @@ class TreeTrainConfig:
 class HgcnTrainConfig:
     """Training of the HGCN vocabulary ("Semi-supervised Vector-Quantization in Visual SLAM
     using HGCN": 20-D PCA of the 256 ORB bits, 9-NN graph, 2-layer HGCN of Chami et al.,
-    NeurIPS 2019, labels seeded on a fraction of the nodes by k-means)."""
+    NeurIPS 2019, labels seeded on a fraction of the nodes by k-means). The k-means
+    vocabulary (the ablation without the graph and the network) uses the same PCA, seed
+    k-means, word count, coarse nodes and search settings."""
 
     n_words: int = 8000  # K: words = seed clusters = output classes
     pca_dim: int = 20  # PCA dimensions of the descriptor features
@@ -446,20 +448,23 @@ class HgcnTrainConfig:
     kmeans_iters: int = 20  # faiss k-means iterations of the label seeding
     kmeans_points_per_word: int = 64  # k-means trains on at most this many points per word
     hidden_dim: int = 32  # width of both HGCN layers
-    activation: str = "relu"  # tangent-space activation: relu, leaky_relu, elu, tanh
+    activation: str = "tanh"  # tangent-space activation: relu, leaky_relu, elu, tanh
+    residual: bool = True  # layers add their aggregate to an identity-initialised self path
     dropout: float = 0.0  # dropout on the layer weights (as HGCN's HypLinear)
-    epochs: float = 2.0  # passes over the labelled nodes ...
-    min_steps: int = 100  # ... but at least this many optimiser steps
-    max_steps: int = 3000  # ... and at most this many
-    batch_size: int = 512  # labelled seed nodes per step (each with its 2-hop neighbourhood)
-    sample_neighbours: int = 5  # layer-1 neighbours sampled per node in training (0: all, exact)
-    candidate_classes: int = 2048  # classes in each step's softmax when K is larger: the batch's
-    # labels, the labels seeded in its 2-hop neighbourhood, then random classes up to this count
-    lr: float = 0.01  # Adam learning rate
+    input_radius: float = 0.5  # mean tangent norm of the input features on the first ball
+    epochs: int = 60  # full-batch epochs at most (early stopping usually ends sooner)
+    eval_every: int = 2  # epochs between two validation passes
+    patience: int = 5  # validation passes without improvement before training stops
+    holdout: float = 0.1  # share of the seed groups held out for validation, and again for test
+    candidate_classes: int = 16  # hard negatives per seed in the loss: the nearest prototypes
+    lr: float = 5e-4  # Adam learning rate of the layers
+    scale_lr: float = 0.01  # Adam learning rate of the logit scale
     weight_decay: float = 0.0  # Adam weight decay
     init_curvature: float = 1.0  # initial c of every ball (trainable, c = softplus(raw))
-    n_coarse: int = 100  # coarse nodes (k-means of the word centroids) for the FeatureVector
-    nprobe: int = 4  # inverted lists probed at run time (IVF over the word centroids)
+    n_coarse: int = 100  # coarse nodes (k-means of the word centres) for the FeatureVector
+    nprobe: int = 4  # inverted lists probed at run time (IVF over the words)
+    rerank: int = 4  # hgcn: nearest prototypes (Euclidean, in the ball) re-ranked hyperbolically
+    assignment: str = "network"  # hgcn run time: "network" (the layers) or "centroid" (class means)
     seed: int = 0  # sampling, initialisation and k-means seeds
 
     def __post_init__(self) -> None:
@@ -469,6 +474,12 @@ class HgcnTrainConfig:
             raise ConfigError(f"hgcn.label_fraction: must be in (0, 1], found {self.label_fraction!r}")
         if self.activation not in ("relu", "leaky_relu", "elu", "tanh"):
             raise ConfigError(f"hgcn.activation: unknown activation {self.activation!r}")
+        if not 0.0 <= self.holdout < 0.5:
+            raise ConfigError(f"hgcn.holdout: must be in [0, 0.5), found {self.holdout!r}")
+        if self.assignment not in ("network", "centroid"):
+            raise ConfigError(f"hgcn.assignment: must be 'network' or 'centroid', found {self.assignment!r}")
+        if self.epochs < 0 or self.eval_every < 1 or self.candidate_classes < 1 or self.rerank < 1:
+            raise ConfigError("hgcn: epochs >= 0, eval_every >= 1, candidate_classes >= 1 and rerank >= 1 are required")
 
 
 @dataclasses.dataclass(frozen=True)

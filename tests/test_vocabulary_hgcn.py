@@ -110,19 +110,57 @@ def test_seed_labels_fraction_and_shared_track_labels():
         assert len(np.unique(labels_t[tracks == t])) == 1
 
 
+def planted(rng, n_clusters=6, per=80, spread=1.2):
+    centres = rng.normal(size=(n_clusters, 20)) * spread
+    truth = np.repeat(np.arange(n_clusters), per)
+    return centres, truth, (centres[truth] + rng.normal(size=(len(truth), 20))).astype(np.float32)
+
+
 def test_hgcn_recovers_planted_clusters_from_ten_percent_seeds():
     rng = np.random.default_rng(0)
-    n_clusters, per = 6, 80
-    centres = rng.normal(size=(n_clusters, 20)) * 1.2
-    truth = np.repeat(np.arange(n_clusters), per)
-    x = (centres[truth] + rng.normal(size=(len(truth), 20))).astype(np.float32)
+    n_clusters = 6
+    _, truth, x = planted(rng, n_clusters)
     seeded = rng.random(len(truth)) < 0.1
     labels = np.where(seeded, truth, -1)
-    cfg = HgcnTrainConfig(n_words=n_clusters, hidden_dim=16, batch_size=48, epochs=1.0, min_steps=30)
-    _, pred, stats = train_hgcn(x, build_graph(x, 9), labels, n_clusters, cfg, progress=False)
+    seed_centres = np.stack([x[seeded & (truth == k)].mean(0) for k in range(n_clusters)])
+    cfg = HgcnTrainConfig(n_words=n_clusters, hidden_dim=16, epochs=20, holdout=0.0)
+    model, pred, stats = train_hgcn(x, build_graph(x, 9), labels, seed_centres, cfg, progress=False)
     assert adjusted_rand_index(pred, truth) > 0.9
     assert np.mean(pred[~seeded] == truth[~seeded]) > 0.9
-    assert all(c > 0 for c in stats["curvatures"])
+    assert all(c > 0 for c in stats["curvatures"]) and stats["hgcn_epochs"] == 20
+    # The numpy copy of the layers gives the torch model's embeddings.
+    import torch
+
+    net = model.to_numpy(model.input_scale)
+    with torch.no_grad():
+        iso = model.embed_isolated(torch.from_numpy(x / model.input_scale)).numpy()
+    np.testing.assert_allclose(net.embed_isolated(x), iso, atol=2e-5)
+
+
+def test_runtime_assignment_reproduces_the_network_labels_on_planted_clusters():
+    """The run-time word (the trained layers applied to one descriptor alone, then the nearest
+    prototype) is the word the network gives the descriptor inside the training graph, for
+    training descriptors and for new ones (labelled inside a graph over both)."""
+    from orbslam_hgcn.vocabulary.hgcn_vocab import train_hgcn_vocabulary
+
+    rng = np.random.default_rng(1)
+    centres, truth, x = planted(rng, 12, 150, 2.0)
+    lift = rng.normal(size=(20, 64))
+    desc = (x @ lift).astype(np.float32)  # float descriptors, 64-D
+    cfg = HgcnTrainConfig(n_words=12, pca_dim=20, hidden_dim=16, epochs=10, n_coarse=3, label_fraction=0.2)
+    vocab = train_hgcn_vocabulary(desc, np.arange(len(desc)) // 30, cfg, progress=False)
+    stats = vocab.metadata.stats
+    assert vocab.assignment == "network" and stats["runtime_word_agreement"] >= 0.9
+    xp = vocab.project(desc)
+    graph = vocab.graph_words(xp, build_graph(xp, 9))
+    assert np.mean(vocab.words_of_points(xp) == graph) >= 0.9
+    # New descriptors of the same clusters.
+    new = ((centres[truth[::5]] + rng.normal(size=(len(truth[::5]), 20))) @ lift).astype(np.float32)
+    both = np.concatenate([desc, new])
+    bp = vocab.project(both)
+    in_graph = vocab.graph_words(bp, build_graph(bp, 9))[len(desc):]
+    alone = vocab.transform_words(new)
+    assert np.mean(alone == in_graph) >= 0.9
 
 
 @pytest.mark.skipif(not vf.available(), reason="real sample data not found")
@@ -133,15 +171,32 @@ def test_trained_hgcn_vocabulary_quantiser():
     assert np.all(np.isfinite(vocab.centroids)) and np.all(vocab.idf >= 0)
     desc = vf.descriptors("euroc", 0)
     x = vocab.project(desc)
-    brute = ((x[:, None] - vocab.centroids[None]) ** 2).sum(-1).argmin(1)
-    np.testing.assert_array_equal(vocab.transform_words(desc), brute)  # exact search below 2048 words
+    # Network assignment: the nearest prototype (hyperbolic distance) of the lone-node
+    # embedding; the search is exact below 2048 words.
+    assert vocab.assignment == "network"
+    h = vocab.embed(x).astype(np.float64)
+    c = float(vocab.network.curvatures[-1])
+    p = vocab.prototypes.astype(np.float64)
+    d = np.arccosh(1 + 2 * c * ((h[:, None] - p[None]) ** 2).sum(-1)
+                   / ((1 - c * (h ** 2).sum(-1))[:, None] * (1 - c * (p ** 2).sum(-1))[None]))
     words = vocab.transform_words(desc)
+    assert np.mean(words == d.argmin(1)) > 0.99  # float32 ties aside
     np.testing.assert_array_equal(vocab.word_nodes(words, 4), vocab.word_coarse[words])
     assert vocab.word_coarse.max() < cfg.n_coarse
+    # Centroid assignment: the nearest class-mean centroid in PCA space.
+    vocab.assignment = "centroid"
+    try:
+        brute = ((x[:, None] - vocab.centroids[None]) ** 2).sum(-1).argmin(1)
+        np.testing.assert_array_equal(vocab.transform_words(desc), brute)
+    finally:
+        vocab.assignment = "network"
     meta = vocab.metadata
     assert meta.n_descriptors == len(vf.training_set()[0]) and meta.n_images == 10
     assert meta.params["pca_dim"] == 20 and meta.params["knn"] == 9
     assert dataclasses.asdict(cfg)["label_fraction"] == meta.params["label_fraction"]
+    for key in ("labelled_accuracy", "validation_accuracy", "heldout_accuracy", "runtime_word_agreement"):
+        assert 0.0 <= meta.stats[key] <= 1.0
+    assert meta.stats["runtime_word_agreement"] >= 0.9
 
 
 @pytest.mark.skipif(not vf.available(), reason="real sample data not found")
@@ -178,7 +233,7 @@ def test_hgcn_vocabulary_on_float_descriptors(tmp_path):
     centres = rng.normal(0, 5, (10, 128)).astype(np.float32)
     truth = rng.integers(0, 10, 3000)
     desc = centres[truth] + rng.normal(0, 0.3, (3000, 128)).astype(np.float32)
-    cfg = HgcnTrainConfig(n_words=40, hidden_dim=8, min_steps=10, batch_size=64, n_coarse=4, label_fraction=0.2)
+    cfg = HgcnTrainConfig(n_words=40, hidden_dim=8, epochs=4, n_coarse=4, label_fraction=0.2)
     vocab = train_hgcn_vocabulary(desc, np.arange(3000) // 100, cfg, progress=False)
     assert vocab.descriptor_type == "float" and vocab.metadata.descriptor_dim == 128
     words = vocab.transform_words(desc)

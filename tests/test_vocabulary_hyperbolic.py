@@ -108,7 +108,7 @@ def test_layers_keep_points_inside_the_ball(scale):
     cols = np.tile(np.arange(n), n)
     adj = sparse_tensor(rows, cols, np.full(n * n, 1.0 / n), (n, n))
     x = torch.randn(n, 5) * scale
-    model = HGCN(5, 8, 4, cfg)
+    model = HGCN(5, 8, cfg)
     c = model.curvatures
     h0 = model.embed_input(x)
     layer = HGCNLayer(5, 8, 0.0, "relu")
@@ -117,21 +117,26 @@ def test_layers_keep_points_inside_the_ball(scale):
     for h, cv in ((h0, c[0]), (layer(h0, adj, c[0], c[1]), c[1]), (model.embed_all(x, adj), c[2])):
         assert torch.isfinite(h).all()
         assert (h.norm(dim=-1) < 1 / cv.sqrt()).all()
-    logits = model.logits(model.embed_all(x, adj))
+    protos = model.prototype_points(torch.randn(4, 5) * scale)
+    h = model.embed_all(x, adj)
+    logits = model.candidate_logits(h, protos, torch.arange(4).repeat(n, 1))
     assert torch.isfinite(logits).all()
 
 
+@pytest.mark.parametrize("residual", [True, False])
 @pytest.mark.parametrize("scale", [0.5, 30.0])
-def test_tangent_space_evaluation_equals_ball_operations(scale):
+def test_tangent_space_evaluation_equals_ball_operations(scale, residual):
     # The training path (tangent vectors, closed-form log0(proj(exp0(.)))) must equal the
     # layer-by-layer ball operations of HGCN, including when the projection clips.
     torch.manual_seed(1)
-    cfg = HgcnTrainConfig(n_words=5, hidden_dim=6, init_curvature=0.7)
-    model = HGCN(4, 6, 5, cfg).double()
+    cfg = HgcnTrainConfig(n_words=5, hidden_dim=6, init_curvature=0.7, residual=residual)
+    model = HGCN(4, 6, cfg).double()
     with torch.no_grad():
         model.raw_c.copy_(torch.tensor([0.3, -0.2, 0.8], dtype=torch.float64))
         for layer in model.layers:
-            layer.linear.bias.normal_()
+            for lin in (layer.linear, layer.self_linear) if residual else (layer.linear,):
+                lin.weight.normal_(0, 0.5)
+                lin.bias.normal_()
     n = 7
     g = torch.Generator().manual_seed(2)
     dense = torch.rand(n, n, generator=g, dtype=torch.float64)

@@ -52,8 +52,7 @@ def small_orb_vocab():
     return train_tree_vocabulary(desc, img, k=10, levels=3, trained_on="test frames", progress=False)
 
 
-SMALL_HGCN = HgcnTrainConfig(n_words=150, hidden_dim=16, epochs=1.0, min_steps=10, batch_size=128,
-                             candidate_classes=64, n_coarse=20, kmeans_iters=10)
+SMALL_HGCN = HgcnTrainConfig(n_words=150, hidden_dim=16, epochs=6, eval_every=2, n_coarse=20, kmeans_iters=10)
 
 
 @functools.lru_cache(maxsize=None)
@@ -62,3 +61,11 @@ def small_hgcn_vocab():
 
     desc, img = training_set()
     return train_hgcn_vocabulary(desc, img, SMALL_HGCN, trained_on="test frames", progress=False)
+
+
+@functools.lru_cache(maxsize=None)
+def small_kmeans_vocab():
+    from orbslam_hgcn.vocabulary.flat import train_kmeans_vocabulary
+
+    desc, img = training_set()
+    return train_kmeans_vocabulary(desc, img, SMALL_HGCN, trained_on="test frames", progress=False)

@@ -26,19 +26,20 @@ from orbslam_hgcn.errors import VocabularyError
 from orbslam_hgcn.map import Map
 from orbslam_hgcn.map.io import MapFile, MapFileError, read_header, read_map, save_map
 from orbslam_hgcn.tracking.tracker import TrackingState
+from orbslam_hgcn.vocabulary.base import SHIPPED
 from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector
 
 log = logging.getLogger(__name__)
 
 
 def vocabulary_reference(vocabulary: Any, name: str | None = None) -> dict[str, Any]:
-    """What identifies a vocabulary in a map file: kind, name (``orb``/``hgcn`` for the
+    """What identifies a vocabulary in a map file: kind, name (``orb``, ``hgcn``, ... for the
     shipped ones, else a resolved path), word count, training description and a SHA-256
     over its (W,) IDF weights and its metadata JSON."""
     h = hashlib.sha256(np.ascontiguousarray(vocabulary.idf, dtype=np.float32).tobytes())
     h.update(vocabulary.metadata.to_json().encode("utf-8"))
     name = name or vocabulary.kind
-    if name not in ("orb", "hgcn") and Path(name).exists():
+    if name not in SHIPPED and Path(name).exists():
         name = str(Path(name).resolve())
     return {
         "kind": vocabulary.kind,

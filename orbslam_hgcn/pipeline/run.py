@@ -105,7 +105,7 @@ def open_vocabulary(vocab: str | None, loop_closing: bool) -> Any:
     name = vocab or "hgcn"
     if name == "none":
         if loop_closing:
-            raise OrbslamError("loop closing needs a vocabulary: use --vocab orb|hgcn|FILE, or --no-loop")
+            raise OrbslamError("loop closing needs a vocabulary: use --vocab orb|hgcn|kmeans|orb10k|FILE, or --no-loop")
         return None
     try:
         return load_vocabulary(name)

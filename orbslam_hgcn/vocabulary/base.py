@@ -6,11 +6,11 @@ Every vocabulary turns descriptors into words (``transform_words``), words into 
 (``score``) and is saved as one versioned file (``save`` / :func:`load_vocabulary`). The
 rest of the system never needs to know which kind it holds.
 
-File format (version 1): one ``.npz`` (zip) archive holding
+File format (version 2): one ``.npz`` (zip) archive holding
 
 * ``_magic``: the string ``orbslam_hgcn-vocabulary``;
 * ``_format_version``: int, :data:`FORMAT_VERSION`;
-* ``_kind``: ``orb`` (DBoW2-style tree) or ``hgcn``;
+* ``_kind``: ``orb`` (DBoW2-style tree), ``hgcn`` or ``kmeans``;
 * ``_metadata``: JSON text of :class:`VocabularyMetadata`;
 * ``idf``: (W,) float32 inverse document frequency of every word;
 * the arrays of the kind (see each class).
@@ -18,6 +18,8 @@ File format (version 1): one ``.npz`` (zip) archive holding
 It is written to a temporary file beside the target and renamed into place, so an
 interrupted save never leaves a partial file. Reading checks the header, every array's
 CRC (zip) and the arrays' shapes; any problem is a :class:`VocabularyError` naming the file.
+Version 2 added the ``kmeans`` kind and the HGCN vocabulary's network; version-1 files
+(``orb`` and ``hgcn``, whose HGCN words are found by nearest centroid) still load.
 """
 
 from __future__ import annotations
@@ -40,14 +42,20 @@ from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector, l1_score
 log = logging.getLogger(__name__)
 
 MAGIC = "orbslam_hgcn-vocabulary"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 # Kind -> module defining its class (imported when a file of that kind is loaded).
 KIND_MODULES = {
     "orb": "orbslam_hgcn.vocabulary.orb_tree",
     "hgcn": "orbslam_hgcn.vocabulary.hgcn_vocab",
+    "kmeans": "orbslam_hgcn.vocabulary.flat",
 }
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
-DEFAULT_FILES = {"orb": DATA_DIR / "vocab_orb_default.npz", "hgcn": DATA_DIR / "vocab_hgcn_default.npz"}
+DEFAULT_FILES = {"orb": DATA_DIR / "vocab_orb_default.npz", "hgcn": DATA_DIR / "vocab_hgcn_default.npz",
+                 "kmeans": DATA_DIR / "vocab_kmeans_default.npz"}
+# Names load_vocabulary takes besides files: the default of each kind, and the ORB tree of
+# the flat vocabularies' size (k = 10, L = 4) for comparisons at equal size.
+SHIPPED = {**DEFAULT_FILES, "orb10k": DATA_DIR / "vocab_orb10k.npz"}
 
 
 @dataclasses.dataclass
@@ -222,20 +230,20 @@ def load_vocabulary(path: str | Path, expected_kind: str | None = None) -> Vocab
     """Load any vocabulary file, dispatching on its kind.
 
     path: a vocabulary file (``.npz``, or a DBoW2 text file such as ORB-SLAM's ``ORBvoc.txt``,
-    told by a ``.txt`` name or a first line of four integers), or the name ``orb`` / ``hgcn``
-    for the shipped default.
+    told by a ``.txt`` name or a first line of four integers), or the name of a shipped one:
+    ``orb`` / ``hgcn`` / ``kmeans`` (the default of that kind) or ``orb10k``.
     expected_kind: if given, a file of another kind is a VocabularyError.
     """
     path = Path(path)
-    if not path.exists() and str(path) in DEFAULT_FILES:
-        path = DEFAULT_FILES[str(path)]
+    if not path.exists() and str(path) in SHIPPED:
+        path = SHIPPED[str(path)]
     from orbslam_hgcn.vocabulary import dbow2  # here: dbow2 imports this module
 
     if dbow2.is_dbow2_text(path):  # a DBoW2 text vocabulary (ORB-SLAM's ORBvoc.txt): an ORB tree
         if expected_kind not in (None, "orb"):
             raise VocabularyError(f"{path}: is a DBoW2 text ('orb') vocabulary, expected {expected_kind!r}")
         return dbow2.read_dbow2_text(path)
-    arrays = read_versioned_npz(path, "vocabulary", MAGIC, FORMAT_VERSION, VocabularyError,
+    arrays = read_versioned_npz(path, "vocabulary", MAGIC, READABLE_VERSIONS, VocabularyError,
                                 "retrain it with 'orbslam-hgcn vocab train'")
     kind = str(arrays.get("_kind", ""))
     if kind not in KIND_MODULES:
@@ -259,7 +267,7 @@ def load_vocabulary(path: str | Path, expected_kind: str | None = None) -> Vocab
 
 
 def vocabulary_class(kind: str) -> type[Vocabulary]:
-    """The Vocabulary subclass of ``kind`` (``orb`` or ``hgcn``)."""
+    """The Vocabulary subclass of ``kind`` (``orb``, ``hgcn`` or ``kmeans``)."""
     module = importlib.import_module(KIND_MODULES[kind])
     for obj in vars(module).values():
         if isinstance(obj, type) and issubclass(obj, Vocabulary) and getattr(obj, "kind", None) == kind:
@@ -274,7 +282,7 @@ def require(cond: bool, path: Path, message: str) -> None:
 
 
 def default_vocabulary_path(kind: str) -> Path:
-    """The shipped default vocabulary file of ``kind`` (``orb`` or ``hgcn``)."""
+    """The shipped default vocabulary file of ``kind`` (``orb``, ``hgcn`` or ``kmeans``)."""
     if kind not in DEFAULT_FILES:
         raise VocabularyError(f"unknown vocabulary kind {kind!r}; use one of {', '.join(DEFAULT_FILES)}")
     return DEFAULT_FILES[kind]

@@ -6,24 +6,29 @@ Training (after "Semi-supervised Vector-Quantization in Visual SLAM using HGCN")
 2. the symmetric, normalised 9-NN graph of the descriptors (faiss);
 3. seed labels on a fraction of the nodes (default 10%): faiss k-means in PCA space with
    K = the word count, each seeded node labelled with its nearest k-means centre; with
-   track ids (descriptors of one 3D point in several keyframes), all members of a track
+   track ids (descriptors of one 3D point in several images), all members of a track
    holding a seeded node share the label of the track's mean;
-4. the 2-layer HGCN (:mod:`.hgcn`) trained on the seeds labels every node (argmax);
-5. each word's centroid is the mean (in PCA space) of its nodes; a word no node chose
-   keeps its k-means centre, so no word is empty.
+4. the 2-layer HGCN (:mod:`.hgcn`) trained on the seeds, with early stopping on held-out
+   seeds, labels every node: a word is a class, and its prototype the network's embedding
+   of the class's seed centre, a point of the Poincare ball.
 
-Run time: descriptors are PCA-projected (a byte lookup table) and assigned to the nearest
-word centroid by faiss: exactly (IndexFlatL2) for small vocabularies, or through an
-inverted file over the centroids (IndexIVFFlat, ``nprobe`` lists) for large ones.
-IDF weights are computed over the training images as for the tree.
+Run time (``assignment = "network"``): a descriptor is PCA-projected (a byte lookup table),
+passed through the trained layers as a graph of its own (:class:`~.ball.BallNetwork`, in
+numpy), and its word is the nearest prototype in the hyperbolic distance: faiss finds the
+``rerank`` nearest prototypes in the ball's Euclidean coordinates (exactly, or through an
+inverted file over the prototypes with ``nprobe`` lists probed), and those are re-ranked
+exactly. Training measures how often this gives the word the network gave the training
+descriptor inside its graph (``runtime_word_agreement``). ``assignment = "centroid"``
+instead takes the nearest class-mean centroid (in PCA space) of the network's labels, the
+decoder of version-1 files, which load that way.
 
-The vocabulary is flat; its FeatureVector uses a coarse level: the word centroids are
-clustered by k-means into ``n_coarse`` nodes and a feature's node is its word's coarse
-node (``levels_up >= 1``; ``levels_up = 0`` indexes the words themselves).
+IDF weights are computed over the training images as for the tree; the FeatureVector uses
+coarse nodes (k-means of the class-mean centroids), see :mod:`.flat`.
 
-Saved arrays: ``pca_mean`` (F,), ``pca_components`` (F, d), ``centroids`` (W, d),
-``coarse_centroids`` (C, d), ``word_coarse`` (W,) int32, ``ivf_centroids`` (L, d) (L = 0:
-exact search) and ``nprobe`` (scalar).
+Saved arrays: those of :class:`~.flat.KMeansVocabulary` (``centroids`` are the class means
+of the network's labels) and, for the network, ``prototypes`` (W, h) points of the output
+ball, ``proto_ivf_centroids`` (L, h), ``rerank`` and ``assignment`` (scalars) and the
+``net_*`` arrays of :class:`~.ball.BallNetwork`.
 """
 
 from __future__ import annotations
@@ -33,130 +38,148 @@ import logging
 import time
 from pathlib import Path
 
-import faiss
 import numpy as np
 
 from orbslam_hgcn.config import HgcnTrainConfig
-from orbslam_hgcn.vocabulary.base import Vocabulary, VocabularyMetadata, now_iso, require
+from orbslam_hgcn.vocabulary.ball import BallNetwork, ball_weights
+from orbslam_hgcn.vocabulary.base import VocabularyMetadata, now_iso, require
 from orbslam_hgcn.vocabulary.bow import idf_from_documents
-from orbslam_hgcn.vocabulary.descriptors import BINARY, FLOAT, descriptor_kind
-from orbslam_hgcn.vocabulary.graph import PCA, build_graph, configure_faiss, fit_pca
+from orbslam_hgcn.vocabulary.flat import (
+    PCAVocabulary,
+    PointIndex,
+    check_training_input,
+    coarse_nodes,
+    ivf_lists,
+    kmeans,
+    nearest,
+)
+from orbslam_hgcn.vocabulary.graph import PCA, build_graph, fit_pca
 
 log = logging.getLogger(__name__)
 
-FLAT_MAX_WORDS = 2048  # exact nearest-centroid search up to this many words, IVF above
+ASSIGNMENTS = ("network", "centroid")
 
 
-def kmeans(x: np.ndarray, k: int, niter: int, seed: int, points_per_centroid: int = 256) -> np.ndarray:
-    """(k, d) float32 faiss k-means centres of rows x (N, d); trains on at most
-    ``points_per_centroid * k`` rows (faiss subsamples)."""
-    configure_faiss()
-    x = np.ascontiguousarray(x, dtype=np.float32)
-    km = faiss.Kmeans(x.shape[1], k, niter=niter, seed=seed, max_points_per_centroid=points_per_centroid,
-                      min_points_per_centroid=1, verbose=False)
-    km.train(x)
-    return np.ascontiguousarray(km.centroids, dtype=np.float32)
+class HGCNVocabulary(PCAVocabulary):
+    """Flat vocabulary of HGCN-learned words (kind ``hgcn``).
 
-
-def nearest(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """(N,) int64 index of the nearest centre of every row (exact, faiss flat)."""
-    configure_faiss()
-    index = faiss.IndexFlatL2(centres.shape[1])
-    index.add(np.ascontiguousarray(centres, dtype=np.float32))
-    return index.search(np.ascontiguousarray(x, dtype=np.float32), 1)[1][:, 0]
-
-
-class HGCNVocabulary(Vocabulary):
-    """Flat vocabulary of HGCN-learned word centroids in PCA space (kind ``hgcn``).
-
-    pca: descriptor projection. centroids: (W, d) word centroids. coarse_centroids: (C, d).
-    word_coarse: (W,) coarse node of every word. ivf_centroids: (L, d) inverted-list
-    centres of the run-time search (L = 0: exact). nprobe: lists probed per query.
+    pca: descriptor projection. centroids: (W, d) class-mean centroids in PCA space.
+    coarse_centroids: (C, d). word_coarse: (W,) coarse node of every word. ivf_centroids:
+    (L, d) inverted-list centres of the centroid search (L = 0: exact). nprobe: lists probed
+    per query. network: the trained layers (None: a version-1 file, centroids only).
+    prototypes: (W, h) output-ball points of the words. proto_ivf_centroids: (L', h).
+    rerank: prototypes re-ranked per descriptor. assignment: ``network`` or ``centroid``.
     """
 
     kind = "hgcn"
 
     def __init__(self, pca: PCA, centroids: np.ndarray, coarse_centroids: np.ndarray, word_coarse: np.ndarray,
-                 ivf_centroids: np.ndarray, nprobe: int, idf: np.ndarray, metadata: VocabularyMetadata) -> None:
-        super().__init__(idf, metadata)
-        self.pca = pca
+                 ivf_centroids: np.ndarray, nprobe: int, idf: np.ndarray, metadata: VocabularyMetadata, *,
+                 network: BallNetwork | None = None, prototypes: np.ndarray | None = None,
+                 proto_ivf_centroids: np.ndarray | None = None, rerank: int = 4,
+                 assignment: str = "network") -> None:
+        super().__init__(pca, coarse_centroids, word_coarse, idf, metadata)
         self.centroids = np.ascontiguousarray(centroids, dtype=np.float32)
-        self.coarse_centroids = np.ascontiguousarray(coarse_centroids, dtype=np.float32)
-        self.word_coarse = np.ascontiguousarray(word_coarse, dtype=np.int32)
-        self.ivf_centroids = np.ascontiguousarray(ivf_centroids, dtype=np.float32).reshape(-1, self.centroids.shape[1])
-        configure_faiss()
-        d = self.centroids.shape[1]
-        if len(self.ivf_centroids) == 0:
-            self._index = faiss.IndexFlatL2(d)
-        else:
-            quantizer = faiss.IndexFlatL2(d)
-            quantizer.add(self.ivf_centroids)
-            self._index = faiss.IndexIVFFlat(quantizer, d, len(self.ivf_centroids))
-            self._index.is_trained = True
-            self._quantizer = quantizer  # keep alive: the IVF index does not own it
-        self._index.add(self.centroids)
-        self.nprobe = nprobe
+        self._centroid_search = PointIndex(self.centroids, ivf_centroids, nprobe)
+        self.network = network
+        self.rerank = int(rerank)
+        if network is not None:
+            self.prototypes = np.ascontiguousarray(prototypes, dtype=np.float32)
+            lists = np.zeros((0, self.prototypes.shape[1]), np.float32) if proto_ivf_centroids is None \
+                else proto_ivf_centroids
+            self._proto_search = PointIndex(self.prototypes, lists, nprobe)
+            self._proto_w = ball_weights(self.prototypes, float(network.curvatures[-1]))
+        self.assignment = assignment
+
+    @property
+    def assignment(self) -> str:
+        return self._assignment
+
+    @assignment.setter
+    def assignment(self, value: str) -> None:
+        if value not in ASSIGNMENTS:
+            raise ValueError(f"assignment must be one of {ASSIGNMENTS}, found {value!r}")
+        if value == "network" and self.network is None:
+            raise ValueError("this vocabulary holds no network (a version-1 file): only 'centroid' assignment")
+        self._assignment = value
+
+    @property
+    def ivf_centroids(self) -> np.ndarray:
+        return self._centroid_search.lists
 
     @property
     def nprobe(self) -> int:
-        return self._nprobe
+        return self._centroid_search.nprobe
 
     @nprobe.setter
     def nprobe(self, value: int) -> None:
-        self._nprobe = int(value)
-        if isinstance(self._index, faiss.IndexIVF):
-            self._index.nprobe = max(1, min(self._nprobe, self._index.nlist))
+        self._centroid_search.nprobe = value
+        if self.network is not None:
+            self._proto_search.nprobe = value
 
-    def project(self, desc: np.ndarray) -> np.ndarray:
-        """(N, d) PCA coordinates of (N, B) uint8 or (N, D) float descriptors."""
-        return self.pca.transform(self.check_descriptors(desc))
+    def embed(self, x: np.ndarray) -> np.ndarray:
+        """(N, h) output-ball points of PCA coordinates x (N, d), each a graph of its own."""
+        return self.network.embed_isolated(x)
 
-    def _words(self, desc: np.ndarray) -> np.ndarray:
-        return self.words_of_points(self.pca.transform(desc))
+    def nearest_prototype(self, h: np.ndarray, exact: bool = False) -> np.ndarray:
+        """(N,) int32 hyperbolically nearest prototype of ball points h (N, h): among the
+        ``rerank`` Euclidean-nearest found by the search, or among all (``exact``)."""
+        if exact:
+            p2 = np.einsum("kd,kd->k", self.prototypes, self.prototypes)
+            out = np.empty(len(h), np.int32)
+            for s in range(0, len(h), 4096):
+                hh = h[s : s + 4096]
+                q = (p2[None, :] - 2 * hh @ self.prototypes.T + np.einsum("nd,nd->n", hh, hh)[:, None]) * self._proto_w
+                out[s : s + 4096] = q.argmin(1)
+            return out
+        cand = self._proto_search.search(h, self.rerank)
+        safe = np.maximum(cand, 0)
+        diff = self.prototypes[safe] - h[:, None, :]
+        score = np.einsum("nkd,nkd->nk", diff, diff) * self._proto_w[safe]
+        score[cand < 0] = np.inf
+        return cand[np.arange(len(h)), score.argmin(1)].astype(np.int32)
 
     def words_of_points(self, x: np.ndarray) -> np.ndarray:
-        """(N,) int32 nearest word of points x (N, d) in PCA space (the run-time search)."""
-        _, idx = self._index.search(np.ascontiguousarray(x, dtype=np.float32), 1)
-        return idx[:, 0].astype(np.int32)
+        if self._assignment == "centroid":
+            return self._centroid_search.search(x, 1)[:, 0].astype(np.int32)
+        return self.nearest_prototype(self.embed(x))
 
-    def word_nodes(self, words: np.ndarray, levels_up: int) -> np.ndarray:
-        words = np.asarray(words, dtype=np.int64)
-        return words.astype(np.int32) if levels_up <= 0 else self.word_coarse[words]
+    def graph_words(self, x: np.ndarray, adj) -> np.ndarray:
+        """(N,) int32 the network's words of nodes x (N, d) inside the graph with normalised
+        propagation matrix adj (the labels training gives; for held-out descriptors, build
+        the graph over them and the training descriptors)."""
+        return self.nearest_prototype(self.network.embed_graph(x, adj), exact=True)
 
     def _state(self) -> dict[str, np.ndarray]:
-        return {
-            "pca_mean": self.pca.mean,
-            "pca_components": self.pca.components,
-            "centroids": self.centroids,
-            "coarse_centroids": self.coarse_centroids,
-            "word_coarse": self.word_coarse,
-            "ivf_centroids": self.ivf_centroids,
-            "nprobe": np.array(self.nprobe, np.int64),
-        }
+        out = {**self._pca_state(), "centroids": self.centroids, "ivf_centroids": self.ivf_centroids,
+               "nprobe": np.array(self.nprobe, np.int64)}
+        if self.network is not None:
+            out.update(self.network.arrays())
+            out.update({"prototypes": self.prototypes, "proto_ivf_centroids": self._proto_search.lists,
+                        "rerank": np.array(self.rerank, np.int64), "assignment": np.array(self._assignment)})
+        return out
 
     @classmethod
     def _from_state(cls, arrays: dict[str, np.ndarray], metadata: VocabularyMetadata, path: Path) -> HGCNVocabulary:
-        names = ("pca_mean", "pca_components", "centroids", "coarse_centroids", "word_coarse", "ivf_centroids",
-                 "nprobe")
-        missing = [n for n in names if n not in arrays]
-        require(not missing, path, f"missing arrays {missing}")
-        mean, comp, cent = arrays["pca_mean"], arrays["pca_components"], arrays["centroids"]
-        coarse, wc, ivf = arrays["coarse_centroids"], arrays["word_coarse"], arrays["ivf_centroids"]
-        require(mean.ndim == 1 and comp.ndim == 2 and comp.shape[0] == len(mean), path, "bad PCA arrays")
-        d = comp.shape[1]
-        binary = metadata.descriptor_type == BINARY
-        require(len(mean) == (8 * metadata.descriptor_dim if binary else metadata.descriptor_dim), path,
-                "PCA input size differs from the descriptor size")
-        require(cent.ndim == 2 and cent.shape[1] == d and len(cent) == len(arrays["idf"]), path,
-                "'centroids' does not match the PCA size or the word count")
-        require(coarse.ndim == 2 and coarse.shape[1] == d and len(coarse) >= 1, path, "bad 'coarse_centroids'")
-        require(wc.shape == (len(cent),) and wc.dtype.kind == "i", path, "bad 'word_coarse'")
-        require(bool(np.all((wc >= 0) & (wc < len(coarse)))), path, "'word_coarse' out of range")
-        require(ivf.ndim == 2 and ivf.shape[1] == d, path, "bad 'ivf_centroids'")
-        for name in ("pca_mean", "pca_components", "centroids", "coarse_centroids", "ivf_centroids"):
-            require(bool(np.all(np.isfinite(arrays[name]))), path, f"non-finite values in '{name}'")
-        pca = PCA(mean, comp, binary=binary)
-        return cls(pca, cent, coarse, wc, ivf, int(arrays["nprobe"]), arrays["idf"], metadata)
+        pca = cls._check_pca_state(arrays, metadata, path, ("centroids", "ivf_centroids", "nprobe"))
+        n = len(arrays["idf"])
+        cls._check_points(arrays, path, "centroids", "ivf_centroids", pca.dim, n)
+        kw: dict = {"assignment": "centroid"}
+        if "prototypes" in arrays:
+            try:
+                net = BallNetwork.from_arrays(arrays)
+            except (KeyError, ValueError) as exc:
+                require(False, path, f"bad network arrays ({exc})")
+            require(net.weights[0].shape[1] == pca.dim, path, "network input size differs from the PCA size")
+            cls._check_points(arrays, path, "prototypes", "proto_ivf_centroids", net.out_dim, n)
+            assignment = str(arrays.get("assignment", "network"))
+            require(assignment in ASSIGNMENTS, path, f"unknown assignment {assignment!r}")
+            kw = {"network": net, "prototypes": arrays["prototypes"], "proto_ivf_centroids": arrays["proto_ivf_centroids"],
+                  "rerank": int(arrays.get("rerank", 4)), "assignment": assignment}
+        else:
+            log.info("%s: a vocabulary without the network (format version 1): words by nearest centroid", path)
+        return cls(pca, arrays["centroids"], arrays["coarse_centroids"], arrays["word_coarse"],
+                   arrays["ivf_centroids"], int(arrays["nprobe"]), arrays["idf"], metadata, **kw)
 
 
 def seed_labels(x: np.ndarray, cfg: HgcnTrainConfig, track_ids: np.ndarray | None, rng: np.random.Generator):
@@ -182,6 +205,15 @@ def seed_labels(x: np.ndarray, cfg: HgcnTrainConfig, track_ids: np.ndarray | Non
     return labels, centres
 
 
+def class_means(x: np.ndarray, pred: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """(K, d) mean of each class's points; a class without points keeps its fallback row."""
+    k = len(fallback)
+    counts = np.bincount(pred, minlength=k)
+    sums = np.zeros((k, x.shape[1]), np.float64)
+    np.add.at(sums, pred, x)
+    return np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], fallback).astype(np.float32)
+
+
 def train_hgcn_vocabulary(
     desc: np.ndarray,
     image_ids: np.ndarray,
@@ -190,28 +222,18 @@ def train_hgcn_vocabulary(
     track_ids: np.ndarray | None = None,
     trained_on: str = "",
     progress: bool = True,
-    kmeans_only: bool = False,
 ) -> HGCNVocabulary:
     """Train an HGCN vocabulary (see the module docstring).
 
     desc: (N, 32) uint8 ORB or (N, D) float descriptors. image_ids: (N,) image of every
     descriptor (the IDF documents). track_ids: optional (N,) 3D point of every descriptor
-    (-1: none). kmeans_only: ablation baseline: skip the graph and the HGCN and use the
-    seed k-means centres as the words (same PCA, word count, search and weights).
-    Returns the vocabulary; ``metadata.stats`` holds the stage timings.
+    (-1: none). Returns the vocabulary; ``metadata.stats`` holds the stage timings, the
+    seed accuracies and the run-time agreement.
     """
     from orbslam_hgcn.vocabulary.hgcn import train_hgcn  # torch: imported for training only
 
     cfg = cfg or HgcnTrainConfig()
-    desc = np.asarray(desc)
-    kind = descriptor_kind(desc)
-    image_ids = np.asarray(image_ids).reshape(-1)
-    if len(desc) != len(image_ids):
-        raise ValueError("desc and image_ids differ in length")
-    if len(desc) < 2 * cfg.n_words:
-        raise ValueError(f"{len(desc)} descriptors are too few for {cfg.n_words} words (need at least twice as many)")
-    if kind == FLOAT:
-        desc = desc.astype(np.float32)
+    desc, image_ids, kind = check_training_input(desc, image_ids, cfg.n_words)
     rng = np.random.default_rng(cfg.seed)
     stats: dict = {}
     t0 = t = time.perf_counter()
@@ -225,32 +247,21 @@ def train_hgcn_vocabulary(
     pca = fit_pca(desc, cfg.pca_dim, seed=cfg.seed)
     x = pca.transform(desc)
     lap("pca")
-    if not kmeans_only:
-        adj = build_graph(x, cfg.knn, cfg.knn_exact_max, cfg.knn_nprobe, cfg.seed)
-        stats["graph_edges"] = int(adj.nnz - adj.shape[0])
-        lap("graph")
+    adj = build_graph(x, cfg.knn, cfg.knn_exact_max, cfg.knn_nprobe, cfg.seed)
+    stats["graph_edges"] = int(adj.nnz - adj.shape[0])
+    lap("graph")
     labels, seeds = seed_labels(x, cfg, track_ids, rng)
     stats["labelled_nodes"] = int((labels >= 0).sum())
     lap("seed_kmeans")
-    if kmeans_only:
-        pred = nearest(x, seeds)
-    else:
-        _, pred, hstats = train_hgcn(x, adj, labels, cfg.n_words, cfg, progress)
-        stats.update(hstats)
+    model, pred, hstats = train_hgcn(x, adj, labels, seeds, cfg, groups=track_ids, progress=progress)
+    stats.update(hstats)
     t = time.perf_counter()
-    counts = np.bincount(pred, minlength=cfg.n_words)
-    sums = np.zeros((cfg.n_words, x.shape[1]), np.float64)
-    np.add.at(sums, pred, x)
-    centroids = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], seeds).astype(np.float32)
-    stats["empty_words"] = int((counts == 0).sum())
+    network = model.to_numpy(model.input_scale)
+    prototypes = network.embed_isolated(seeds)
+    centroids = class_means(x, pred, seeds)
+    stats["empty_words"] = int((np.bincount(pred, minlength=cfg.n_words) == 0).sum())
     stats["agreement_with_seed_kmeans"] = round(float(np.mean(pred == nearest(x, seeds))), 4)
-    n_coarse = min(cfg.n_coarse, cfg.n_words)
-    coarse = kmeans(centroids, n_coarse, 20, cfg.seed)
-    word_coarse = nearest(centroids, coarse).astype(np.int32)
-    ivf = np.zeros((0, x.shape[1]), np.float32)
-    if cfg.n_words > FLAT_MAX_WORDS:
-        ivf = kmeans(centroids, int(4 * np.sqrt(cfg.n_words)), 20, cfg.seed + 1)
-    lap("centroids")
+    coarse, word_coarse = coarse_nodes(centroids, cfg.n_coarse, cfg.seed)
     meta = VocabularyMetadata(
         kind="hgcn",
         n_words=cfg.n_words,
@@ -260,17 +271,27 @@ def train_hgcn_vocabulary(
         n_images=int(len(np.unique(image_ids))),
         n_descriptors=int(len(desc)),
         created=now_iso(),
-        params={**dataclasses.asdict(cfg), "tracks": track_ids is not None, "ivf_lists": len(ivf),
-                "decoder": "none: k-means centres (ablation)" if kmeans_only else "hyperbolic prototypes",
-                "weighting": "tf-idf", "scoring": "L1"},
+        params={**dataclasses.asdict(cfg), "tracks": track_ids is not None,
+                "decoder": "hyperbolic prototypes of the seed centres", "weighting": "tf-idf", "scoring": "L1"},
         stats=stats,
     )
-    vocab = HGCNVocabulary(pca, centroids, coarse, word_coarse, ivf, cfg.nprobe, np.ones(cfg.n_words, np.float32), meta)
+    vocab = HGCNVocabulary(pca, centroids, coarse, word_coarse, ivf_lists(centroids, cfg.seed + 1), cfg.nprobe,
+                           np.ones(cfg.n_words, np.float32), meta, network=network, prototypes=prototypes,
+                           proto_ivf_centroids=ivf_lists(prototypes, cfg.seed + 2), rerank=cfg.rerank,
+                           assignment="network")
+    params = meta.params
+    params["ivf_lists"] = len(vocab.ivf_centroids)
+    lap("prototypes")
     words = vocab.words_of_points(x)
     stats["runtime_word_agreement"] = round(float(np.mean(words == pred)), 4)
+    vocab.assignment = "centroid"
+    stats["centroid_word_agreement"] = round(float(np.mean(vocab.words_of_points(x) == pred)), 4)
+    vocab.assignment = cfg.assignment
+    if cfg.assignment == "centroid":
+        words = vocab.words_of_points(x)
+    lap("agreement")
     vocab.idf = idf_from_documents(words, image_ids, vocab.n_words)
-    lap("idf")
     stats["train_seconds"] = round(time.perf_counter() - t0, 2)
-    log.info("trained a %d-word HGCN vocabulary on %d descriptors of %d images in %.1f s",
-             cfg.n_words, len(desc), meta.n_images, stats["train_seconds"])
+    log.info("trained a %d-word HGCN vocabulary on %d descriptors of %d images in %.1f s (run-time agreement %.3f)",
+             cfg.n_words, len(desc), meta.n_images, stats["train_seconds"], stats["runtime_word_agreement"])
     return vocab

@@ -201,10 +201,11 @@ def train_vocabulary(
     trained_on: str = "",
     progress: bool = True,
 ) -> Vocabulary:
-    """Train a vocabulary of ``kind`` (``orb`` or ``hgcn``) on descriptors.
+    """Train a vocabulary of ``kind`` (``orb``, ``hgcn`` or ``kmeans``) on descriptors.
 
     words: target word count; for ``orb`` it sets the depth ``L = round(log_k(words))``
-    (a tree has up to k^L words), for ``hgcn`` the number of words exactly.
+    (a tree has up to k^L words), for ``hgcn`` and ``kmeans`` the number of words exactly.
+    ``kmeans`` is trained with the ``hgcn`` settings (same PCA, k-means, search).
     """
     if kind == "orb":
         from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
@@ -222,7 +223,14 @@ def train_vocabulary(
             hc = dataclasses.replace(hc, n_words=int(words))
         return train_hgcn_vocabulary(desc, image_ids, hc, track_ids=track_ids, trained_on=trained_on,
                                      progress=progress)
-    raise OrbslamError(f"unknown vocabulary kind {kind!r}; use 'orb' or 'hgcn'")
+    if kind == "kmeans":
+        from orbslam_hgcn.vocabulary.flat import train_kmeans_vocabulary
+
+        hc = hgcn or HgcnTrainConfig()
+        if words:
+            hc = dataclasses.replace(hc, n_words=int(words))
+        return train_kmeans_vocabulary(desc, image_ids, hc, trained_on=trained_on, progress=progress)
+    raise OrbslamError(f"unknown vocabulary kind {kind!r}; use 'orb', 'hgcn' or 'kmeans'")
 
 
 def train_from_images(
