@@ -12,12 +12,13 @@ from orbslam_hgcn.vocabulary import load_vocabulary
 from orbslam_hgcn.vocabulary import train as train_mod
 from orbslam_hgcn.npzfile import atomic_save_npz
 from orbslam_hgcn.vocabulary.base import FORMAT_VERSION
+from orbslam_hgcn.vocabulary.flat import KMeansVocabulary
 from orbslam_hgcn.vocabulary.hgcn_vocab import HGCNVocabulary
 from orbslam_hgcn.vocabulary.orb_tree import TreeVocabulary
 
 pytestmark = pytest.mark.skipif(not vf.available(), reason="real sample data not found")
 
-KINDS = {"orb": vf.small_orb_vocab, "hgcn": vf.small_hgcn_vocab}
+KINDS = {"orb": vf.small_orb_vocab, "hgcn": vf.small_hgcn_vocab, "kmeans": vf.small_kmeans_vocab}
 
 
 @pytest.fixture(params=list(KINDS))
@@ -65,8 +66,10 @@ def test_damaged_files_raise_vocabulary_errors(saved, tmp_path):
     _expect_error(tmp_path / "missing.npz", "not found")
     other = "hgcn" if vocab.kind == "orb" else "orb"
     _expect_error(path, f"is a '{vocab.kind}' vocabulary, expected '{other}'", expected_kind=other)
-    with pytest.raises(VocabularyError):
-        (HGCNVocabulary if vocab.kind == "orb" else TreeVocabulary).load(path)
+    for cls in (HGCNVocabulary, TreeVocabulary, KMeansVocabulary):
+        if cls.kind != vocab.kind:
+            with pytest.raises(VocabularyError):
+                cls.load(path)
 
 
 def _rewrite(path, out, **changes):
@@ -118,6 +121,14 @@ def test_cli_train_info_and_interrupt(tmp_path, monkeypatch, capsys):
     assert cli.main(["vocab", "info", str(out)]) == 0
     text = capsys.readouterr().out
     assert "kind:            orb" in text and "training images: 3" in text and images in text
+    km = tmp_path / "km.npz"
+    assert cli.main(["vocab", "train", "--kind", "kmeans", "--images", images, "--max-images", "4",
+                     "--words", "64", "--out", str(km)]) == 0
+    back = load_vocabulary(km)
+    assert back.kind == "kmeans" and back.n_words == 64
+    assert cli.main(["vocab", "info", str(km)]) == 0
+    text = capsys.readouterr().out
+    assert "kind:            kmeans" in text and "search_exactness: 1.0" in text and "kmeans_seconds" in text
     # Ctrl-C during training: exit 130, no vocabulary, the descriptor cache kept for resuming.
     out2 = tmp_path / "voc2.npz"
 
@@ -147,23 +158,53 @@ def test_zip_member_crc_is_checked(tmp_path):
     _expect_error(path)
 
 
-@pytest.mark.parametrize("kind", ["orb", "hgcn"])
-def test_shipped_default_vocabularies(kind):
-    from orbslam_hgcn.config import VocabularyConfig
-    from orbslam_hgcn.vocabulary import default_vocabulary_path, open_vocabulary
+@pytest.mark.parametrize("name", ["orb", "hgcn", "kmeans", "orb10k"])
+def test_shipped_vocabularies(name):
+    from orbslam_hgcn.vocabulary.base import SHIPPED
 
-    path = default_vocabulary_path(kind)
-    if not path.is_file():
-        pytest.skip(f"{path} not built (tools/train_default_vocabs.py)")
-    assert path.stat().st_size < 50e6
-    vocab = open_vocabulary(VocabularyConfig(kind=kind))
+    path = SHIPPED[name]
+    assert path.is_file() and path.stat().st_size < 50e6
+    vocab = load_vocabulary(name)
     meta = vocab.metadata
+    kind = "orb" if name == "orb10k" else name
     assert vocab.kind == kind and meta.n_words == vocab.n_words >= 4000
     # Trained on synthetic scenes, not on the evaluation data.
     assert "synthetic" in meta.trained_on and "tum" not in meta.trained_on.lower()
     assert "euroc" not in meta.trained_on.lower() and meta.n_descriptors >= 100_000
     bow, fv = vocab.transform(vf.descriptors("tum", 0))
     assert len(bow) > 100 and fv.n_features() > 500
+
+
+def test_shipped_hgcn_and_kmeans_are_the_same_size():
+    """The ablation pair: the k-means vocabulary is the HGCN vocabulary's seed k-means at its
+    word count, and the ORB tree of about that size is there to compare with."""
+    hgcn, km, tree = (load_vocabulary(n) for n in ("hgcn", "kmeans", "orb10k"))
+    assert km.n_words == hgcn.n_words and km.pca.dim == hgcn.pca.dim
+    assert tree.metadata.params["levels"] == 4 and 5000 <= tree.n_words <= 10_000
+    for meta in (km.metadata, tree.metadata):  # the same training recipe
+        assert "seeds 1001..1010, 60 frames each" in meta.trained_on and meta.n_images == hgcn.metadata.n_images
+        assert meta.n_descriptors == hgcn.metadata.n_descriptors
+
+
+def test_version1_hgcn_file_reads_by_centroid(tmp_path):
+    """A format-1 HGCN file (no network) loads, finds words by nearest class-mean centroid,
+    and cannot be switched to the network."""
+    vocab = vf.small_hgcn_vocab()
+    path = tmp_path / "v2.npz"
+    vocab.save(path)
+    with np.load(path) as z:
+        drop = [k for k in z.files if k.startswith("net_") or k in ("prototypes", "proto_ivf_centroids", "rerank",
+                                                                     "assignment")]
+    assert "prototypes" in drop and "net_w0" in drop
+    v1 = _rewrite(path, tmp_path / "v1.npz", _format_version=np.array(1), **{k: None for k in drop})
+    back = load_vocabulary(v1)
+    assert back.network is None and back.assignment == "centroid"
+    desc = vf.descriptors("tum", 0)
+    x = back.project(desc)
+    brute = ((x[:, None, :] - back.centroids[None]) ** 2).sum(-1).argmin(1)
+    np.testing.assert_array_equal(back.transform_words(desc), brute)  # exact search below 2048 words
+    with pytest.raises(ValueError, match="no network"):
+        back.assignment = "network"
 
 
 def test_config_validation(tmp_path):

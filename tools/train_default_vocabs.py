@@ -1,16 +1,20 @@
-"""Build the shipped default vocabularies (orbslam_hgcn/data/vocab_{orb,hgcn}_default.npz).
+"""Build the shipped vocabularies (orbslam_hgcn/data/vocab_{orb,hgcn,kmeans}_default.npz and
+vocab_orb10k.npz).
 
 Training imagery: synthetic office scenes rendered by ``orbslam_hgcn.synth.sequence``
 with scene (and texture) seeds 1001..1000+S, far from the seeds evaluation sequences use
 (0 and small numbers), each seen along one generated loop round its desk, sampled sparsely
 (default 60 frames per loop) so the images cover the whole room. No TUM, EuRoC or other
-evaluation imagery is used. Both vocabularies are trained on the same descriptors
+evaluation imagery is used. Every vocabulary is trained on the same descriptors
 (ORB-SLAM's extractor, 1000 features per image); the HGCN's seed labels are shared along
-feature tracks matched between consecutive frames of each scene. The run is reproducible: the same
+feature tracks matched between consecutive frames of each scene. ``kmeans`` is the HGCN
+vocabulary's ablation (its PCA and seed k-means at the same word count, without the graph
+and the network); ``orb10k`` is the ORB tree at about that size (k=10, L=4). The run is reproducible: the same
 arguments give the same files (up to the creation date in the metadata).
 
     python tools/train_default_vocabs.py                 # render, extract, train both
     python tools/train_default_vocabs.py --kinds hgcn    # only the HGCN vocabulary
+    python tools/train_default_vocabs.py --kinds kmeans orb10k
 
 Rendered frames and the descriptor cache stay in ``--work-dir`` for later runs.
 """
@@ -27,7 +31,7 @@ from pathlib import Path
 
 from orbslam_hgcn.config import HgcnTrainConfig, TreeTrainConfig
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
-from orbslam_hgcn.vocabulary.base import DEFAULT_FILES
+from orbslam_hgcn.vocabulary.base import SHIPPED
 from orbslam_hgcn.vocabulary.tracks import build_tracks
 from orbslam_hgcn.vocabulary.train import extract_descriptors, open_image_source, select_images, train_vocabulary
 
@@ -53,8 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", type=int, default=10, help="training scenes (seeds 1001..)")
     ap.add_argument("--frames", type=int, default=60, help="frames per scene, spread over one loop")
     ap.add_argument("--features", type=int, default=1000, help="ORB features per image")
-    ap.add_argument("--kinds", nargs="+", choices=("orb", "hgcn"), default=["orb", "hgcn"])
-    ap.add_argument("--hgcn-words", type=int, default=HgcnTrainConfig.n_words)
+    ap.add_argument("--kinds", nargs="+", choices=("orb", "hgcn", "kmeans", "orb10k"),
+                    default=["orb", "hgcn", "kmeans", "orb10k"])
+    ap.add_argument("--hgcn-words", type=int, default=HgcnTrainConfig.n_words, help="hgcn and kmeans words")
     ap.add_argument("--orb-levels", type=int, default=TreeTrainConfig.levels)
     ap.add_argument("--no-tracks", action="store_true",
                     help="hgcn: no shared labels along feature tracks of consecutive frames")
@@ -79,10 +84,15 @@ def main(argv: list[str] | None = None) -> int:
                   f"{args.frames} frames each; no evaluation imagery")
     log.info("%d descriptors from %d images", len(desc), len(pairs))
     for kind in args.kinds:
-        out = DEFAULT_FILES[kind] if args.out_dir is None else args.out_dir / DEFAULT_FILES[kind].name
+        out = SHIPPED[kind] if args.out_dir is None else args.out_dir / SHIPPED[kind].name
         t = time.perf_counter()
-        if kind == "orb":
-            vocab = train_vocabulary("orb", desc, image_ids, tree=TreeTrainConfig(levels=args.orb_levels),
+        if kind in ("orb", "orb10k"):
+            levels = args.orb_levels if kind == "orb" else 4
+            vocab = train_vocabulary("orb", desc, image_ids, tree=TreeTrainConfig(levels=levels),
+                                     trained_on=trained_on)
+        elif kind == "kmeans":
+            vocab = train_vocabulary("kmeans", desc, image_ids,
+                                     hgcn=dataclasses.replace(HgcnTrainConfig(), n_words=args.hgcn_words),
                                      trained_on=trained_on)
         else:
             track_ids = None if args.no_tracks else build_tracks(*data.per_image(), data.groups)
