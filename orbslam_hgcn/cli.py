@@ -123,7 +123,11 @@ def _add_lcd(sub: argparse._SubParsersAction) -> None:
         help="compare loop-closure detectors (BoW, HGCN-BoW, FAB-MAP 2.0, HGCN-FABMAP)",
         description="Train each detector on --train, run it over --test, score its confusion "
         "matrix against the ground-truth loop matrix (recall, accuracy = precision, recall at "
-        "100%% precision, AUC); write confusion matrices, PR curves and lcd_results.json.",
+        "100%% precision, AUC); write confusion matrices, PR curves and lcd_results.json. "
+        "The memory each detector needs (FAB-MAP: 4 bytes per pair of the vocabulary words that vary "
+        "across the training images, for the Chow-Liu tree) is checked against the memory available "
+        "(or $ORBSLAM_HGCN_MEMORY_LIMIT_MB) before it runs; when it does not fit, the command stops "
+        "with status 2: use a smaller vocabulary, --levels, or fewer images.",
     )
     p.add_argument("--method", default="all",
                    help="bow, hgcn-bow, fabmap2, hgcn-fabmap, a comma list, or all (default)")
@@ -137,6 +141,9 @@ def _add_lcd(sub: argparse._SubParsersAction) -> None:
                    "for bow/fabmap2, HGCN vocabulary for hgcn-*)")
     p.add_argument("--vocab-orb", default=None, help="ORB-tree vocabulary file for bow and fabmap2")
     p.add_argument("--vocab-hgcn", default=None, help="HGCN vocabulary file for hgcn-bow and hgcn-fabmap")
+    p.add_argument("--levels", type=int, default=None, metavar="N",
+                   help="ORB-tree vocabularies: take as words the tree's nodes N levels below the root "
+                   "(at most k^N words; the shipped tree has k=10, 5 levels) instead of its leaves")
     p.add_argument("--features", choices=("orb", "sift"), default="orb",
                    help="local features (sift stands in for SURF; default orb)")
     p.add_argument("--n-features", type=int, default=1000, help="features per image (default 1000)")
@@ -171,7 +178,7 @@ def _run_lcd(args: argparse.Namespace) -> int:
     results, paths = lcd.lcd_command(
         method=args.method, train=args.train, test=args.test, gt=args.gt, out=args.out,
         features=args.features, vocab=args.vocab, vocab_orb=args.vocab_orb, vocab_hgcn=args.vocab_hgcn,
-        cfg=cfg, stride=args.stride, limit=args.limit, n_features=args.n_features,
+        cfg=cfg, stride=args.stride, limit=args.limit, n_features=args.n_features, levels=args.levels,
         fabmap_threshold=lcd.DEFAULT_FABMAP_THRESHOLD if args.threshold is None else args.threshold,
         bow_threshold=lcd.DEFAULT_BOW_THRESHOLD if args.bow_threshold is None else args.bow_threshold,
     )

@@ -2,6 +2,7 @@
 
 import itertools
 import math
+import re
 
 import numpy as np
 import pytest
@@ -199,3 +200,128 @@ def test_config_from_yaml_section_and_range_checks():
         check_config(FabmapConfig(p_new=1.0))
     with pytest.raises(ConfigError, match="p_z_given_e"):
         check_config(FabmapConfig(p_z_given_e=0.2, p_z_given_not_e=0.3))
+
+
+def _dense_reference_tree(X, smoothing=0.01):
+    """The Chow-Liu tree as built before words were restricted: Prim's algorithm over the
+    (V, V) mutual information of every word, rooted at an endpoint of the strongest edge."""
+    from orbslam_hgcn.placerec.chow_liu import tree_from_parents
+
+    mi = mutual_information_matrix(sp.csr_matrix(X))
+    root = int(np.unravel_index(np.argmax(mi), mi.shape)[0])
+    return tree_from_parents(sp.csr_matrix(X), maximum_spanning_tree(mi, root=root), mi, smoothing)
+
+
+def _words_with_gaps(rng, n_images=400, n_words=40):
+    """Tree samples over n_words columns of which some never occur and one always does."""
+    model = random_tree_model(30, rng, rate=0.3, strength=0.7)
+    z = sample_tree(model, n_images, rng)
+    X = np.zeros((n_images, n_words), dtype=bool)
+    cols = np.sort(rng.choice(n_words, size=30, replace=False))
+    X[:, cols] = z
+    never = np.setdiff1d(np.arange(n_words), cols)
+    X[:, never[0]] = True  # seen in every training image
+    return X, cols, never[1:]
+
+
+def test_tree_over_occurring_words_equals_the_full_tree():
+    from orbslam_hgcn.placerec.chow_liu import varying_words
+
+    rng = np.random.default_rng(21)
+    X, cols, never = _words_with_gaps(rng)
+    assert varying_words(X).tolist() == cols.tolist()
+    new, ref = learn_chow_liu_tree(X), _dense_reference_tree(X)
+    assert new.n_words == ref.n_words == 40
+    assert new.root == ref.root and new.root in cols
+    occurring = set(cols.tolist())
+    edges_among = lambda t: {e for e in t.edges() if e <= occurring}  # noqa: E731
+    assert len(edges_among(new)) == 29  # a spanning tree over the 30 varying words
+    assert edges_among(new) == edges_among(ref)
+    np.testing.assert_array_equal(new.parent[cols], ref.parent[cols])
+    for a in ("p_z", "p_z_given_p", "p_z_given_not_p"):
+        np.testing.assert_array_equal(getattr(new, a)[cols], getattr(ref, a)[cols])
+    np.testing.assert_array_equal(new.mi[cols], ref.mi[cols])
+    # every other word hangs under the root, its conditional its marginal (0.01 unseen, 0.99 always seen)
+    rest = np.setdiff1d(np.arange(40), cols)
+    assert np.all(new.parent[rest] == new.root)
+    np.testing.assert_array_equal(new.p_z_given_p[rest], new.p_z[rest])
+    np.testing.assert_array_equal(new.p_z_given_not_p[rest], new.p_z[rest])
+    np.testing.assert_allclose(new.p_z[never], 0.01)
+    np.testing.assert_allclose(new.p_z[rest[~np.isin(rest, never)]], 0.99)
+    np.testing.assert_array_equal(new.p_z, ref.p_z)
+
+
+def _fabmap_before(tree, X):
+    """FabMap2 as it was: every child of a word in the query patterns."""
+    fm = FabMap2(tree, train=X, num_samples=50, seed=1)
+    fm._children = tree.children()
+    return fm
+
+
+def test_fabmap_scores_unchanged_when_every_word_varies():
+    rng = np.random.default_rng(5)
+    n_words = 300
+    world = WordWorld(n_words, rng, words_per_place=30)
+    train = route_sequence(world, np.arange(40, 240), rng, clutter=20)
+    Xtr = occurrence_matrix(train.word_ids, n_words)
+    counts = np.asarray(Xtr.sum(axis=0)).ravel()
+    assert np.all((counts > 0) & (counts < Xtr.shape[0]))  # every word occurs, none everywhere
+    tree, ref = learn_chow_liu_tree(Xtr), _dense_reference_tree(Xtr)
+    np.testing.assert_array_equal(tree.parent, ref.parent)
+    test = occurrence_matrix(route_sequence(world, np.r_[np.arange(15), np.arange(3, 10)], rng, clutter=10).word_ids,
+                             n_words)
+    for new_place in ("mean_field", "sampled"):
+        cfg = FabmapConfig(new_place=new_place)
+        got = run_fabmap(FabMap2(tree, train=Xtr, num_samples=50, seed=1), test, cfg)
+        want = run_fabmap(_fabmap_before(ref, Xtr), test, cfg)
+        np.testing.assert_array_equal(got.log_scores, want.log_scores)
+        np.testing.assert_array_equal(got.p_new, want.p_new)
+        np.testing.assert_array_equal(got.matched, want.matched)
+        assert np.sum(got.matched[15:] >= 0) >= 5  # the revisits are found, so the comparison is not vacuous
+
+
+def test_fabmap_with_words_missing_from_training_scores_as_the_full_tree():
+    """Words that never occur in training (and one seen everywhere) drop out of the spanning
+    tree; FAB-MAP over the full word range still scores test images that use them as the
+    tree over all words does, to rounding."""
+    rng = np.random.default_rng(8)
+    X, cols, never = _words_with_gaps(rng, n_images=300)
+    tree, ref = learn_chow_liu_tree(X), _dense_reference_tree(X)
+    test = rng.random((25, 40)) < 0.3  # test images see the missing words too
+    got = run_fabmap(FabMap2(tree, train=X, num_samples=50, seed=1), test, FabmapConfig(new_place="sampled"))
+    want = run_fabmap(_fabmap_before(ref, X), test, FabmapConfig(new_place="sampled"))
+    finite = np.isfinite(want.log_scores)
+    np.testing.assert_array_equal(np.isfinite(got.log_scores), finite)
+    np.testing.assert_allclose(got.log_scores[finite], want.log_scores[finite], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(got.p_new, want.p_new, rtol=1e-9, atol=1e-12)
+
+
+def test_chow_liu_stops_before_allocating_beyond_the_memory_limit(monkeypatch):
+    import tracemalloc
+
+    from orbslam_hgcn.errors import OrbslamError
+    from orbslam_hgcn.placerec import chow_liu
+
+    rng = np.random.default_rng(0)
+    X = sp.random(200, 20000, density=0.02, format="csr", random_state=rng)  # ~all 20k words vary: 1.6 GB
+    called = []
+    monkeypatch.setattr(chow_liu, "mutual_information_matrix", lambda *a, **k: called.append(1))
+    tracemalloc.start()
+    try:
+        with pytest.raises(OrbslamError) as err:
+            learn_chow_liu_tree(X, memory_limit_mb=100)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    msg = str(err.value)
+    v_occ = len(chow_liu.varying_words(X))
+    assert 19000 < v_occ < 20000
+    assert f"over the {v_occ} varying words" in msg, msg
+    need = float(re.search(r"needs about ([0-9.]+) GiB of memory but 100 MiB is available", msg).group(1))
+    assert 4 * v_occ**2 / 2**30 < need < 4 * v_occ**2 / 2**30 + 0.3  # the matrix and a block of working rows
+    assert "smaller vocabulary" in msg
+    assert not called
+    assert peak < 50e6  # nothing of the matrix's size was allocated
+    monkeypatch.setenv("ORBSLAM_HGCN_MEMORY_LIMIT_MB", "10")
+    with pytest.raises(OrbslamError, match="but 10 MiB is available"):
+        learn_chow_liu_tree(X)

@@ -6,6 +6,7 @@ independently of how the real ORB-tree and HGCN vocabularies are trained.
 """
 
 import json
+import re
 
 import cv2
 import numpy as np
@@ -149,3 +150,77 @@ def test_lcd_command_with_a_vocabulary_file(scene, tmp_path, capsys):
         scores = np.load(out / f"confusion_{m}.npy")
         best, _ = best_matches(scores, 1)
         assert np.mean(best[8:] == route[8:]) >= 0.8, (m, best)
+
+
+def _write_scene(scene, tmp_path):
+    from orbslam_hgcn.placerec.data import save_ground_truth
+
+    train, test, route, gt = scene
+    folders = {}
+    for name, images in (("train", train), ("test", test)):
+        folders[name] = tmp_path / name
+        folders[name].mkdir()
+        for i, im in enumerate(images):
+            cv2.imwrite(str(folders[name] / f"{i:04d}.png"), im)
+    save_ground_truth(folders["test"] / "loop_gt.npy", gt)
+    return folders
+
+
+def test_lcd_stops_with_a_clear_error_when_memory_would_not_suffice(scene, tmp_path, capsys, monkeypatch):
+    """With the shipped 99k-word ORB tree, FAB-MAP's Chow-Liu tree over the words of 24
+    training images needs more than a 100 MB limit: the command exits with status 2 and one
+    line naming the memory needed and available and the way out, before any detector runs."""
+    from orbslam_hgcn.cli import main
+    from orbslam_hgcn.placerec import lcd
+
+    folders = _write_scene(scene, tmp_path)
+    ran = []
+    real_detect = lcd.detect
+    monkeypatch.setattr(lcd, "detect", lambda *a, **k: ran.append(a[0]) or real_detect(*a, **k))
+    monkeypatch.setenv("ORBSLAM_HGCN_MEMORY_LIMIT_MB", "100")
+    code = main(["lcd", "--method", "bow,fabmap2", "--train", str(folders["train"]), "--test", str(folders["test"]),
+                 "--n-features", "300", "--out", str(tmp_path / "out")])
+    stderr = capsys.readouterr().err
+    err = [line for line in stderr.splitlines() if line.startswith("orbslam-hgcn lcd: error:")]
+    assert code == 2
+    assert ran == []  # BoW fits, but nothing runs once FAB-MAP is known not to
+    assert len(err) == 1 and "Traceback" not in stderr, stderr
+    m = re.search(r"FAB-MAP 2\.0 \(24 training and 13 test images; a Chow-Liu tree over the ([0-9]+) of 99047 "
+                  r"words that vary in training\) needs about ([0-9]+) MiB of memory but 100 MiB is available; "
+                  r"use a smaller vocabulary .*--levels N", err[0])
+    assert m, err[0]
+    v_occ, need = int(m.group(1)), int(m.group(2))
+    assert 1000 < v_occ < 24 * 300 and need > 4 * v_occ**2 / 2**20
+    assert not (tmp_path / "out" / "lcd_results.json").exists()
+    # the same run with the ORB tree's words three levels below the root (<= 1000 words) fits
+    code = main(["lcd", "--method", "fabmap2", "--train", str(folders["train"]), "--test", str(folders["test"]),
+                 "--n-features", "300", "--levels", "3", "--out", str(tmp_path / "out")])
+    assert code == 0
+    assert ran == ["fabmap2"]
+    record = json.loads((tmp_path / "out" / "lcd_results.json").read_text())
+    assert record["levels"] == 3 and "at level 3 (1000 words)" in record["vocabularies"]["fabmap2"]
+
+
+def test_tree_level_words_are_the_ancestors_at_that_depth(scene):
+    from orbslam_hgcn.placerec.lcd import TreeLevelWords
+    from orbslam_hgcn.vocabulary import orb_tree
+
+    train = scene[0]
+    describer = Describer("orb", n_features=300)
+    desc = [describer(im) for im in train[:12]]
+    vocab = orb_tree.train_tree_vocabulary(
+        np.vstack(desc), np.repeat(np.arange(len(desc)), [len(d) for d in desc]), k=4, levels=3, progress=False
+    )
+    coarse = TreeLevelWords(vocab, 2)
+    assert coarse.n_words == 16 and coarse.descriptor_type == vocab.descriptor_type
+    leaves = vocab.transform_words(desc[0])
+    node = vocab.word_node[leaves]
+    ancestor = vocab.parent[node]  # leaves are at depth 3; their parents at depth 2
+    assert np.all(vocab.depth[ancestor] == 2)
+    got = coarse.transform_words(desc[0])
+    # one coarse word per depth-2 node, numbered in node order
+    nodes2 = np.flatnonzero(vocab.depth == 2)
+    np.testing.assert_array_equal(got, np.searchsorted(nodes2, ancestor))
+    assert TreeLevelWords(vocab, 3).n_words == vocab.n_words
+    with pytest.raises(VocabularyError, match="levels 1..3"):
+        TreeLevelWords(vocab, 4)

@@ -7,11 +7,18 @@ the pairwise mutual information graph. FAB-MAP (Cummins & Newman, IJRR 2008, sec
 uses it so that the likelihood of an observation factorises as
 ``p(Z) = p(z_root) prod_q p(z_q | z_parent(q))``.
 
-Mutual information is computed exactly from co-occurrence counts (a sparse ``X^T X``
-product, one block of rows at a time) into a dense ``(V, V)`` float32 matrix (400 MB for
-10k words), and the maximum spanning tree is grown by Prim's algorithm, one vectorised
-``O(V)`` update per word. The stored conditionals are smoothed as openFABMAP does
-(Glover et al., ICRA 2012): ``p = (1 - 2 s) * frequency + s`` with ``s = 0.01``.
+Only the words that vary across the training images (seen in some but not all of them)
+enter the spanning tree: a word never seen, or seen in every image, has zero mutual
+information with every other word, so the tree over all V words (as openFABMAP builds it)
+hangs it under the root with a conditional equal to its marginal. That is what this module
+stores for such words, without computing their rows. Mutual information among the
+``V_occ`` varying words is computed exactly from co-occurrence counts (a sparse ``X^T X``
+product, one block of rows at a time) into a dense ``(V_occ, V_occ)`` float32 matrix (400 MB
+for 10k words; checked against the memory available first, see
+:mod:`orbslam_hgcn.placerec.memory`), and the maximum spanning tree is grown by Prim's
+algorithm, one vectorised ``O(V_occ)`` update per word. The stored conditionals are
+smoothed as openFABMAP does (Glover et al., ICRA 2012): ``p = (1 - 2 s) * frequency + s``
+with ``s = 0.01``.
 """
 
 from __future__ import annotations
@@ -26,11 +33,18 @@ from scipy.special import xlogy
 from tqdm import tqdm
 
 from orbslam_hgcn.errors import OrbslamError
+from orbslam_hgcn.placerec.memory import (
+    MI_BLOCK_ELEMENTS,
+    MI_BLOCK_ROWS,
+    check_memory,
+    chow_liu_bytes,
+    format_bytes,
+)
 from orbslam_hgcn.placerec.words import as_binary_csr
 
 log = logging.getLogger(__name__)
 
-_BLOCK_ROWS = 512  # rows of the MI matrix computed per sparse product
+_BLOCK_ROWS = MI_BLOCK_ROWS  # rows of the MI matrix computed per sparse product (at most)
 
 
 def _binary_entropy(p: np.ndarray) -> np.ndarray:
@@ -58,10 +72,12 @@ def mutual_information_matrix(X: sp.csr_matrix, *, block_rows: int = _BLOCK_ROWS
     """(V, V) float32 pairwise mutual information of the columns of ``X`` (diagonal 0).
 
     X: (N, V) binary occurrence matrix. Co-occurrences come from sparse products of one
-    block of ``block_rows`` columns at a time, so peak extra memory is O(block_rows * V).
+    block of at most ``block_rows`` columns at a time (fewer for large V), so peak extra
+    memory is O(min(block_rows * V, 2^21)) elements.
     """
     X = as_binary_csr(X)
     n, v = X.shape
+    block_rows = max(1, min(block_rows, MI_BLOCK_ELEMENTS // max(v, 1)))
     counts = np.asarray(X.sum(axis=0)).ravel()
     Xc = X.tocsc()
     mi = np.empty((v, v), dtype=np.float32)
@@ -165,14 +181,28 @@ def _smoothed(count: np.ndarray, total: np.ndarray, s: float) -> np.ndarray:
     return (1.0 - 2.0 * s) * freq + s
 
 
+def varying_words(X: sp.spmatrix) -> np.ndarray:
+    """(V_occ,) int64 ids of the words seen in some but not all rows of ``X`` (N, V)."""
+    X = as_binary_csr(X)
+    counts = np.asarray(X.sum(axis=0)).ravel()
+    return np.flatnonzero((counts > 0) & (counts < X.shape[0])).astype(np.int64)
+
+
 def tree_from_parents(
-    X: sp.csr_matrix, parent: np.ndarray, mi: np.ndarray | None = None, smoothing: float = 0.01
+    X: sp.csr_matrix, parent: np.ndarray, mi: np.ndarray | None = None, smoothing: float = 0.01,
+    *, independent: np.ndarray | None = None,
 ) -> ChowLiuTree:
-    """Fill a tree's smoothed probabilities from occurrence data ``X`` (N, V) and parents."""
+    """Fill a tree's smoothed probabilities from occurrence data ``X`` (N, V) and parents.
+
+    mi: the (V, V) mutual information matrix, or (V,) the mutual information of each word
+    with its parent. independent: (V,) bool, words whose conditionals are set to their
+    marginal (no dependence on the parent).
+    """
     X = as_binary_csr(X)
     n, v = X.shape
     counts = np.asarray(X.sum(axis=0)).ravel().astype(np.float64)
-    q = np.flatnonzero(parent >= 0)
+    dep = parent >= 0 if independent is None else (parent >= 0) & ~independent
+    q = np.flatnonzero(dep)
     p = parent[q]
     Xc = X.tocsc()
     n11 = np.zeros(v)
@@ -184,26 +214,59 @@ def tree_from_parents(
     p_given_p[q] = _smoothed(n11[q], counts[p], smoothing)
     p_given_not_p[q] = _smoothed(counts[q] - n11[q], n - counts[p], smoothing)
     mi_edge = np.zeros(v)
-    if mi is not None:
+    if mi is not None and np.ndim(mi) == 1:
+        mi_edge[q] = np.asarray(mi)[q]
+    elif mi is not None:
         mi_edge[q] = mi[q, p]
     return ChowLiuTree(parent=parent.astype(np.int64), p_z=p_z, p_z_given_p=p_given_p,
                        p_z_given_not_p=p_given_not_p, mi=mi_edge, n_train=n)
 
 
+CHOW_LIU_WAY_OUT = "use a smaller vocabulary or fewer training images"
+
+
 def learn_chow_liu_tree(
-    X: np.ndarray | sp.spmatrix, *, smoothing: float = 0.01, progress: bool = False
+    X: np.ndarray | sp.spmatrix, *, smoothing: float = 0.01, progress: bool = False,
+    memory_limit_mb: float | None = None, way_out: str = CHOW_LIU_WAY_OUT,
 ) -> ChowLiuTree:
     """Learn the Chow-Liu tree of binary occurrence data.
 
     X: (N, V) occurrences (N training images, V words), dense or sparse; nonzero = seen.
-    The root is an endpoint of the strongest edge (as openFABMAP builds it).
+    The spanning tree is grown over the words that vary in X (see :func:`varying_words`);
+    every other word hangs under the root, independent of it. The root is an endpoint of
+    the strongest edge (as openFABMAP builds it). Before the (V_occ, V_occ) mutual
+    information is allocated, its size is checked against the memory available
+    (``memory_limit_mb``, else :func:`orbslam_hgcn.placerec.memory.available_bytes`): an
+    OrbslamError naming both and ``way_out`` when it does not fit.
     """
     X = as_binary_csr(X)
     n, v = X.shape
     if n == 0 or v == 0:
         raise OrbslamError("Chow-Liu tree: no training images or no words")
-    log.info("Chow-Liu tree: %d training images, %d words (%.0f MB for mutual information)", n, v, 4 * v * v / 1e6)
-    mi = mutual_information_matrix(X, progress=progress)
-    root = int(np.unravel_index(np.argmax(mi), mi.shape)[0]) if v > 1 else 0
-    parent = maximum_spanning_tree(mi, root=root)
-    return tree_from_parents(X, parent, mi, smoothing)
+    keep = varying_words(X)
+    vk = len(keep)
+    need = chow_liu_bytes(vk)
+    log.info("Chow-Liu tree: %d training images, %d words, %d of them varying (%s for mutual information)",
+             n, v, vk, format_bytes(4 * vk * vk))
+    check_memory(need, f"the Chow-Liu tree over the {vk} varying words (of {v})", way_out,
+                 limit_mb=memory_limit_mb)
+    root = 0
+    parent = np.zeros(v, dtype=np.int64)
+    mi_edge = np.zeros(v)
+    if vk > 1:
+        mi = mutual_information_matrix(X[:, keep], progress=progress)
+        root_k = int(np.unravel_index(np.argmax(mi), mi.shape)[0])
+        parent_k = maximum_spanning_tree(mi, root=root_k)
+        root = int(keep[root_k])
+        parent[:] = root
+        inner = parent_k >= 0
+        parent[keep[inner]] = keep[parent_k[inner]]
+        mi_edge[keep[inner]] = mi[np.flatnonzero(inner), parent_k[inner]]
+        del mi
+    elif vk == 1:
+        root = int(keep[0])
+        parent[:] = root
+    parent[root] = -1
+    independent = np.ones(v, dtype=bool)
+    independent[keep] = False
+    return tree_from_parents(X, parent, mi_edge, smoothing, independent=independent)

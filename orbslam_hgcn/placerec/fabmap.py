@@ -117,6 +117,13 @@ def _gather_rows(csr: sp.csr_matrix, rows: np.ndarray, weights: np.ndarray) -> t
     return csr.indices[pos], np.repeat(weights, lens)
 
 
+def _dependent_children(tree: ChowLiuTree) -> sp.csr_matrix:
+    """(V, V) CSR: row p lists the children q of p with p(z_q | z_p) depending on z_p."""
+    q = np.flatnonzero((tree.parent >= 0) & (tree.p_z_given_p != tree.p_z_given_not_p))
+    data = np.ones(len(q), dtype=np.int8)
+    return sp.csr_matrix((data, (tree.parent[q], q)), shape=(tree.n_words, tree.n_words))
+
+
 class FabMap2:
     """FAB-MAP 2.0 likelihoods of observations against indexed places.
 
@@ -160,7 +167,10 @@ class FabMap2:
         self.d2 = self.R[:, 0, 1] - self.d1
         self.d3 = self.R[:, 1, 0] - self.d1
         self.d4 = self.R[:, 1, 1] - self.d1
-        self._children = tree.children()
+        # Children whose conditional does not depend on their parent (words that never varied
+        # in training hang under the root that way) contribute exactly nothing when the parent
+        # is seen and they are not, so they are left out of the queries' patterns.
+        self._children = _dependent_children(tree)
         self._parent = tree.parent
         self._mf_default = float(self.G_mf[:, 0, 0].sum())
         self._base_default = float(self.log_t0[:, 0, 0].sum())

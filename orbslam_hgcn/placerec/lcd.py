@@ -14,6 +14,12 @@ hgcn-fabmap    FAB-MAP 2.0 (Chow-Liu tree)     HGCN
 Training supplies the IDF weights (BoW) or the Chow-Liu tree and the sampled new-place
 model (FAB-MAP). Every method yields an (n, n) matrix over the test images, scored by
 :mod:`orbslam_hgcn.placerec.metrics` against the ground-truth loop matrix.
+
+Before any detector runs, the memory each one needs is estimated (the Chow-Liu tree's
+mutual information over the words that vary in training, the (n, n) matrices) and checked
+against the memory available (:mod:`orbslam_hgcn.placerec.memory`); one that does not fit
+stops the comparison with an OrbslamError naming the way out: a smaller vocabulary, the ORB
+tree's words taken at a coarser level (``levels``), or fewer images.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from orbslam_hgcn.placerec.bow_detector import run_bow
 from orbslam_hgcn.placerec.chow_liu import learn_chow_liu_tree
 from orbslam_hgcn.placerec.describe import Describer, WordQuantizer, describe_images, words_of
 from orbslam_hgcn.placerec.fabmap import FabMap2
+from orbslam_hgcn.placerec.memory import bow_bytes, check_memory, fabmap_bytes
 from orbslam_hgcn.placerec.metrics import DetectorScore, PRCurve, score_detector
 from orbslam_hgcn.placerec.sequence import PlaceMatches, run_fabmap
 from orbslam_hgcn.placerec.words import count_matrix, occurrence_matrix
@@ -93,11 +100,68 @@ class LcdResult:
     curve: PRCurve
 
 
-def detect(method: str, words: WordData, cfg: FabmapConfig, *, progress: bool = False) -> PlaceMatches:
+MEMORY_WAY_OUT = (
+    "use a smaller vocabulary (--vocab-orb, --vocab-hgcn or --vocab), the ORB tree's words at a "
+    "coarser level (--levels N: its nodes N levels below the root), or fewer images (--stride, --limit)"
+)
+
+
+class TreeLevelWords:
+    """An ORB-tree vocabulary whose words are its nodes ``level`` levels below the root.
+
+    A descriptor's word is the ancestor at that depth of its leaf (a leaf shallower than
+    ``level`` stands for itself); the distinct such nodes are numbered 0..n_words-1 in
+    node order.
+    """
+
+    def __init__(self, vocab, level: int) -> None:
+        depth = getattr(vocab, "levels", None)
+        if depth is None or not hasattr(vocab, "word_nodes"):
+            raise VocabularyError(f"{vocab!r}: --levels needs an ORB-tree vocabulary")
+        if not 1 <= level <= depth:
+            raise VocabularyError(f"--levels {level}: the ORB tree has levels 1..{depth}")
+        self.vocab = vocab
+        self.level = level
+        nodes = vocab.word_nodes(np.arange(vocab.n_words), depth - level)
+        _, self.word_of_leaf = np.unique(nodes, return_inverse=True)
+        self.n_words = int(self.word_of_leaf.max()) + 1
+        self.descriptor_type = vocab.descriptor_type
+
+    def transform_words(self, descriptors: np.ndarray) -> np.ndarray:
+        return self.word_of_leaf[np.asarray(self.vocab.transform_words(descriptors), dtype=np.int64)]
+
+    def __repr__(self) -> str:
+        return f"{self.vocab!r} at level {self.level} ({self.n_words} words)"
+
+
+def varying_word_count(word_ids: list[np.ndarray], n_words: int) -> int:
+    """How many words occur in some but not all of the images ``word_ids``."""
+    seen = [np.unique(np.asarray(w, dtype=np.int64)) for w in word_ids]
+    counts = np.bincount(np.concatenate(seen), minlength=n_words) if seen else np.zeros(n_words)
+    return int(np.count_nonzero((counts > 0) & (counts < len(word_ids))))
+
+
+def detector_memory(method: str, words: WordData) -> tuple[int, str]:
+    """Estimated peak bytes of one detector on ``words`` (see :mod:`.memory`), and the
+    detector and sizes the estimate is for, in words."""
+    n_test = len(words.test)
+    sizes = f"{len(words.train)} training and {n_test} test images"
+    if is_fabmap(method):
+        v_occ = varying_word_count(words.train, words.n_words)
+        return (fabmap_bytes(v_occ, words.n_words, n_test),
+                f"{METHOD_LABEL[method]} ({sizes}; a Chow-Liu tree over the {v_occ} of {words.n_words} "
+                f"words that vary in training)")
+    return bow_bytes(n_test), f"{METHOD_LABEL[method]} ({sizes}, {words.n_words} words)"
+
+
+def detect(
+    method: str, words: WordData, cfg: FabmapConfig, *, progress: bool = False, memory_limit_mb: float | None = None
+) -> PlaceMatches:
     """Run one detector (trained on ``words.train``) over the test images."""
     if is_fabmap(method):
         Xtr = occurrence_matrix(words.train, words.n_words)
-        tree = learn_chow_liu_tree(Xtr, smoothing=cfg.smoothing, progress=progress)
+        tree = learn_chow_liu_tree(Xtr, smoothing=cfg.smoothing, progress=progress,
+                                   memory_limit_mb=memory_limit_mb, way_out=MEMORY_WAY_OUT)
         fm = FabMap2(tree, cfg.p_z_given_e, cfg.p_z_given_not_e, train=Xtr, num_samples=cfg.num_samples, seed=cfg.seed)
         return run_fabmap(fm, occurrence_matrix(words.test, words.n_words), cfg, progress=progress)
     return run_bow(count_matrix(words.train, words.n_words), count_matrix(words.test, words.n_words), cfg.min_gap)
@@ -112,16 +176,25 @@ def evaluate_methods(
     fabmap_threshold: float = DEFAULT_FABMAP_THRESHOLD,
     bow_threshold: float = DEFAULT_BOW_THRESHOLD,
     progress: bool = False,
+    memory_limit_mb: float | None = None,
 ) -> list[LcdResult]:
-    """Run and score ``methods``; ``words_for[method]`` holds each method's words."""
-    results = []
+    """Run and score ``methods``; ``words_for[method]`` holds each method's words.
+
+    Every method's memory is checked (:func:`detector_memory` against ``memory_limit_mb``,
+    else the memory available) before the first one runs.
+    """
     for method in methods:
         wd = words_for[method]
         if gt.shape != (len(wd.test), len(wd.test)):
             raise OrbslamError(f"ground truth is {gt.shape[0]}x{gt.shape[1]} but there are {len(wd.test)} test images")
+        need, what = detector_memory(method, wd)
+        check_memory(need, what, MEMORY_WAY_OUT, limit_mb=memory_limit_mb)
+    results = []
+    for method in methods:
+        wd = words_for[method]
         log.info("%s: %d training and %d test images, %d words",
                  METHOD_LABEL[method], len(wd.train), len(wd.test), wd.n_words)
-        matches = detect(method, wd, cfg, progress=progress)
+        matches = detect(method, wd, cfg, progress=progress, memory_limit_mb=memory_limit_mb)
         thr = fabmap_threshold if is_fabmap(method) else bow_threshold
         summary, curve = score_detector(METHOD_LABEL[method], matches.scores, gt, thr, matches.min_gap,
                                         log_scores=matches.log_scores)
@@ -213,11 +286,14 @@ def run_lcd(
     fabmap_threshold: float = DEFAULT_FABMAP_THRESHOLD,
     bow_threshold: float = DEFAULT_BOW_THRESHOLD,
     progress: bool = True,
+    memory_limit_mb: float | None = None,
 ) -> list[LcdResult]:
     """Describe both sequences once, quantise per vocabulary, run and score ``methods``.
 
     train_images, test_images: sized iterables of grayscale images. vocabularies: for each
     method, the vocabulary object it uses (methods sharing one object share its words).
+    memory_limit_mb: the memory the detectors may use (default: what the machine has
+    available, or ``$ORBSLAM_HGCN_MEMORY_LIMIT_MB``).
     """
     n_test = len(test_images)
     if gt.shape != (n_test, n_test):
@@ -233,17 +309,20 @@ def run_lcd(
             cache[id(vocab)] = quantize_sequences(train_desc, test_desc, vocab)
         words_for[m] = cache[id(vocab)]
     return evaluate_methods(methods, words_for, gt, cfg, fabmap_threshold=fabmap_threshold,
-                            bow_threshold=bow_threshold, progress=progress)
+                            bow_threshold=bow_threshold, progress=progress, memory_limit_mb=memory_limit_mb)
 
 
 def load_vocabularies(
-    methods: list[str], vocab: str | None = None, vocab_orb: str | None = None, vocab_hgcn: str | None = None
+    methods: list[str], vocab: str | None = None, vocab_orb: str | None = None, vocab_hgcn: str | None = None,
+    levels: int | None = None,
 ) -> dict[str, WordQuantizer]:
     """The vocabulary object of each method, each distinct file loaded once.
 
     ``vocab`` (a kind name ``orb``/``hgcn`` or a file) serves every method; otherwise ORB-tree
     methods use ``vocab_orb`` and HGCN methods ``vocab_hgcn`` (default: the shipped
-    vocabulary of that kind).
+    vocabulary of that kind). ``levels``: the words of every ORB-tree vocabulary are its
+    nodes that many levels below the root (:class:`TreeLevelWords`); a VocabularyError
+    when no method uses an ORB tree.
     """
     from orbslam_hgcn.vocabulary.base import load_vocabulary
 
@@ -256,7 +335,11 @@ def load_vocabularies(
             spec = (vocab_orb or "orb") if METHOD_VOCAB[m] == "orb" else (vocab_hgcn or "hgcn")
         if spec not in loaded:
             loaded[spec] = load_vocabulary(spec)
+            if levels is not None and hasattr(loaded[spec], "levels"):
+                loaded[spec] = TreeLevelWords(loaded[spec], levels)
         out[m] = loaded[spec]
+    if levels is not None and not any(isinstance(v, TreeLevelWords) for v in out.values()):
+        raise VocabularyError(f"--levels {levels}: none of the methods uses an ORB-tree vocabulary")
     return out
 
 
@@ -299,6 +382,8 @@ def lcd_command(
     stride: int = 1,
     limit: int | None = None,
     n_features: int = 1000,
+    levels: int | None = None,
+    memory_limit_mb: float | None = None,
 ) -> tuple[list[LcdResult], list[Path]]:
     """``orbslam-hgcn lcd``: files in, comparison table and figures out.
 
@@ -318,12 +403,13 @@ def lcd_command(
         raise OrbslamError(f"{test}: no --gt given and no loop_gt.npy in the test folder")
     gt_mat = ground_truth_for(gt_path, test_src)
     describer = Describer(features, n_features)
-    vocabularies = load_vocabularies(methods, vocab, vocab_orb, vocab_hgcn)
+    vocabularies = load_vocabularies(methods, vocab, vocab_orb, vocab_hgcn, levels)
     results = run_lcd(methods, train_src, test_src, gt_mat, vocabularies, describer, cfg,
-                      fabmap_threshold=fabmap_threshold, bow_threshold=bow_threshold)
+                      fabmap_threshold=fabmap_threshold, bow_threshold=bow_threshold,
+                      memory_limit_mb=memory_limit_mb)
     extra = {
         "train": str(train), "test": str(test), "ground_truth": str(gt_path), "features": features,
-        "stride": stride, "n_train": len(train_src), "n_test": len(test_src),
+        "stride": stride, "levels": levels, "n_train": len(train_src), "n_test": len(test_src),
         "vocabularies": {m: repr(v) for m, v in vocabularies.items()},
         "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
     }
