@@ -2,6 +2,7 @@
 that end cleanly and track as well, stage errors reaching the caller, and the child-process
 solver giving the in-process results."""
 
+import contextlib
 import dataclasses
 import json
 import multiprocessing
@@ -531,3 +532,44 @@ def test_tracker_waits_for_busy_mapping_only_as_long_as_asked(slow_stages):
     assert not stages.wait_for_mapping(0.01)  # 4 keyframes of 30 ms still to map
     assert stages.wait_for_mapping(5.0)
     assert mapper.done == [0, 1, 2, 3] and stages.mapping_idle()
+
+
+class _DroppingMapper(_SlowMapper):
+    """Halfway through a keyframe, the tracker discards the map (Atlas.drop) and the next
+    step finds its keyframe bad, as a map lost with few keyframes is discarded."""
+
+    def __init__(self, atlas, drop: bool) -> None:
+        super().__init__()
+        self.atlas, self.drop = atlas, drop
+        self.map = atlas.new_map()
+
+    def process(self, kf):
+        if kf.id == 1:
+            if self.drop:
+                self.atlas.drop(self.map)
+            self.map._good_kf(kf.id)  # the keyframe is not in the map: ValueError
+        self.done.append(kf.id)
+        return None
+
+
+@pytest.mark.parametrize("drop", [True, False])
+def test_a_map_discarded_while_its_keyframe_is_mapped_does_not_stop_mapping(drop):
+    from orbslam_hgcn.map.atlas import Atlas
+
+    mapper = _DroppingMapper(Atlas(), drop)
+    stages = ThreadedStages(mapper, None, process_solver=False)
+    mapper.map.set_erase = mapper.map.set_not_erase = lambda kf_id: None  # keyframes not in the map
+    try:
+        for i in range(3):
+            stages.submit(_StubKeyFrame(i))
+        stages.wait_for_mapping(5.0, done=True)
+        if drop:  # the discarded map's keyframe is left, the worker goes on
+            stages.check()
+            assert mapper.map.dropped and mapper.done == [0, 2]
+        else:  # any other error is a bug of the stage: the run stops with it
+            with pytest.raises(WorkerError, match="does not exist or is bad"):
+                stages.check()
+    finally:
+        with contextlib.suppress(WorkerError):
+            stages.close()
+    _assert_nothing_left()

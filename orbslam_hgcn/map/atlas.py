@@ -95,6 +95,7 @@ class Atlas:
                 kf.bad = True
             own = np.flatnonzero((self.points.owner[: self.points.n] == m.map_id) & ~self.points.bad[: self.points.n])
             self.points.bad[own] = True
+            m.dropped = True
             self.maps.pop(m.map_id, None)
             self.n_dropped += 1
             if self.active is m:

@@ -54,6 +54,7 @@ class Map:
         self.config = config or MapConfig()
         self.atlas = atlas
         self.map_id = int(map_id)
+        self.dropped = False  # discarded from its atlas (Atlas.drop): its keyframes and points are bad
         self._own_lock: Any = threading.RLock() if atlas is None else None
         self._kfs: dict[int, KeyFrame] = {}  # every keyframe ever added, bad ones included
         self._pts = atlas.points if atlas is not None else PointStore()

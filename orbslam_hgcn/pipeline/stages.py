@@ -242,10 +242,19 @@ class ThreadedStages:
     # --- the workers ---------------------------------------------------------------------
     def _map_one(self, kf: KeyFrame) -> None:
         with self._gate:
-            self.mapper.map.set_erase(kf.id)
+            m = self.mapper.map
+            m.set_erase(kf.id)
             if kf.bad:
                 return
-            out = self.mapper.process(kf)
+            try:
+                out = self.mapper.process(kf)
+            except (ValueError, KeyError) as exc:
+                # The tracker may discard a small lost map (Atlas.drop, under the map lock)
+                # between two steps of its keyframe's mapping: the rest of that work is moot.
+                if not getattr(m, "dropped", False):
+                    raise
+                log.debug("keyframe %d: its map was discarded while it was being mapped (%s)", kf.id, exc)
+                return
         if out is not None and self._loop is not None:
             self._loop.submit(out)
 
