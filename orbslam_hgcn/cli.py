@@ -124,9 +124,9 @@ def _add_lcd(sub: argparse._SubParsersAction) -> None:
         description="Train each detector on --train, run it over --test, score its confusion "
         "matrix against the ground-truth loop matrix (recall, accuracy = precision, recall at "
         "100%% precision, AUC); write confusion matrices, PR curves and lcd_results.json. "
-        "The memory each detector needs (FAB-MAP: 4 bytes per pair of the vocabulary words that vary "
-        "across the training images, for the Chow-Liu tree) is checked against the memory available "
-        "(or $ORBSLAM_HGCN_MEMORY_LIMIT_MB) before it runs; when it does not fit, the command stops "
+        "The memory each detector needs (its (n, n) matrices over the test images; FAB-MAP: its "
+        "per-word tables and Chow-Liu tree, linear in the vocabulary) is checked against the memory "
+        "available (or $ORBSLAM_HGCN_MEMORY_LIMIT_MB) before it runs; when it does not fit, the command stops "
         "with status 2: use a smaller vocabulary, --levels, or fewer images.",
     )
     p.add_argument("--method", default="all",

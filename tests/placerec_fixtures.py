@@ -133,3 +133,49 @@ def route_sequence(
         word_ids.append(np.unique(np.concatenate([seen, noise])))
     truth = (route[:, None] == route[None, :]) & ~np.eye(len(route), dtype=bool)
     return RouteSequence(word_ids, route, truth)
+
+
+def dense_mutual_information_matrix(X, block_rows: int = 512) -> np.ndarray:
+    """(V, V) float32 pairwise mutual information of the columns of ``X``, diagonal 0: the
+    dense matrix the Chow-Liu tree was once built from, block by block of rows (row ``a``
+    with ``a``'s count first), kept as the reference of the row-by-row computation."""
+    from orbslam_hgcn.placerec.chow_liu import mutual_information_from_counts
+    from orbslam_hgcn.placerec.words import as_binary_csr
+
+    X = as_binary_csr(X)
+    n, v = X.shape
+    counts = np.asarray(X.sum(axis=0)).ravel()
+    Xc = X.tocsc()
+    mi = np.empty((v, v), dtype=np.float32)
+    for a in range(0, v, block_rows):
+        b = min(a + block_rows, v)
+        co = (Xc[:, a:b].T @ Xc).toarray()
+        mi[a:b] = mutual_information_from_counts(co, counts[a:b, None], counts[None, :], n)
+        mi[np.arange(a, b), np.arange(a, b)] = 0.0
+    return mi
+
+
+def dense_chow_liu_tree(X, smoothing: float = 0.01, *, restrict: bool = True):
+    """The Chow-Liu tree as built from the dense matrix: Prim's algorithm over the mutual
+    information of the varying words (``restrict``) or of every word, rooted at the row of
+    the matrix's ``argmax``; other words hang under the root, independent of it."""
+    import scipy.sparse as sp
+
+    from orbslam_hgcn.placerec.chow_liu import maximum_spanning_tree, tree_from_parents, varying_words
+
+    X = sp.csr_matrix(X)
+    v = X.shape[1]
+    keep = varying_words(X) if restrict else np.arange(v)
+    mi = dense_mutual_information_matrix(X[:, keep])
+    root_k = int(np.unravel_index(np.argmax(mi), mi.shape)[0])
+    parent_k = maximum_spanning_tree(lambda u: mi[u], len(keep), root=root_k)
+    root = int(keep[root_k])
+    parent = np.full(v, root, dtype=np.int64)
+    inner = np.flatnonzero(parent_k >= 0)
+    parent[keep[inner]] = keep[parent_k[inner]]
+    parent[root] = -1
+    mi_edge = np.zeros(v)
+    mi_edge[keep[inner]] = mi[inner, parent_k[inner]]
+    independent = np.ones(v, dtype=bool)
+    independent[keep] = False
+    return tree_from_parents(X, parent, mi_edge, smoothing, independent=independent)

@@ -2,7 +2,6 @@
 
 import itertools
 import math
-import re
 
 import numpy as np
 import pytest
@@ -11,16 +10,16 @@ from scipy.sparse.csgraph import minimum_spanning_tree
 
 from orbslam_hgcn.config import FabmapConfig
 from orbslam_hgcn.placerec.chow_liu import (
+    MutualInformationRows,
     learn_chow_liu_tree,
     maximum_spanning_tree,
     mutual_information_from_counts,
-    mutual_information_matrix,
 )
 from orbslam_hgcn.placerec.fabmap import FabMap2
 from orbslam_hgcn.placerec.sequence import motion_prior, run_fabmap
 from orbslam_hgcn.placerec.words import occurrence_matrix
 
-from placerec_fixtures import WordWorld, random_tree_model, route_sequence, sample_tree
+from placerec_fixtures import WordWorld, dense_chow_liu_tree, random_tree_model, route_sequence, sample_tree
 
 
 def test_chow_liu_recovers_known_tree():
@@ -42,7 +41,8 @@ def test_mutual_information_matches_direct_formula():
     rng = np.random.default_rng(0)
     z = rng.random((300, 6)) < np.array([0.1, 0.5, 0.5, 0.9, 0.0, 1.0])
     z[:, 2] = z[:, 1] ^ (rng.random(300) < 0.1)
-    mi = mutual_information_matrix(sp.csr_matrix(z), block_rows=4)
+    rows = MutualInformationRows(sp.csr_matrix(z))
+    mi = np.array([rows.row(u) for u in range(6)])
     for a, b in itertools.combinations(range(6), 2):
         direct = 0.0
         for va, vb in itertools.product((0, 1), repeat=2):
@@ -60,7 +60,7 @@ def test_prim_equals_scipy_maximum_spanning_tree():
     w = rng.random((60, 60))
     w = (w + w.T) / 2
     np.fill_diagonal(w, 0)
-    parent = maximum_spanning_tree(w, root=5)
+    parent = maximum_spanning_tree(lambda u: w[u], 60, root=5)
     assert parent[5] == -1 and np.sum(parent < 0) == 1
     ours = sum(w[q, p] for q, p in enumerate(parent) if p >= 0)
     ref = -minimum_spanning_tree(sp.csr_matrix(np.triu(-w, 1))).sum()
@@ -205,11 +205,7 @@ def test_config_from_yaml_section_and_range_checks():
 def _dense_reference_tree(X, smoothing=0.01):
     """The Chow-Liu tree as built before words were restricted: Prim's algorithm over the
     (V, V) mutual information of every word, rooted at an endpoint of the strongest edge."""
-    from orbslam_hgcn.placerec.chow_liu import tree_from_parents
-
-    mi = mutual_information_matrix(sp.csr_matrix(X))
-    root = int(np.unravel_index(np.argmax(mi), mi.shape)[0])
-    return tree_from_parents(sp.csr_matrix(X), maximum_spanning_tree(mi, root=root), mi, smoothing)
+    return dense_chow_liu_tree(X, smoothing, restrict=False)
 
 
 def _words_with_gaps(rng, n_images=400, n_words=40):
@@ -294,34 +290,3 @@ def test_fabmap_with_words_missing_from_training_scores_as_the_full_tree():
     np.testing.assert_array_equal(np.isfinite(got.log_scores), finite)
     np.testing.assert_allclose(got.log_scores[finite], want.log_scores[finite], rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(got.p_new, want.p_new, rtol=1e-9, atol=1e-12)
-
-
-def test_chow_liu_stops_before_allocating_beyond_the_memory_limit(monkeypatch):
-    import tracemalloc
-
-    from orbslam_hgcn.errors import OrbslamError
-    from orbslam_hgcn.placerec import chow_liu
-
-    rng = np.random.default_rng(0)
-    X = sp.random(200, 20000, density=0.02, format="csr", random_state=rng)  # ~all 20k words vary: 1.6 GB
-    called = []
-    monkeypatch.setattr(chow_liu, "mutual_information_matrix", lambda *a, **k: called.append(1))
-    tracemalloc.start()
-    try:
-        with pytest.raises(OrbslamError) as err:
-            learn_chow_liu_tree(X, memory_limit_mb=100)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-    msg = str(err.value)
-    v_occ = len(chow_liu.varying_words(X))
-    assert 19000 < v_occ < 20000
-    assert f"over the {v_occ} varying words" in msg, msg
-    need = float(re.search(r"needs about ([0-9.]+) GiB of memory but 100 MiB is available", msg).group(1))
-    assert 4 * v_occ**2 / 2**30 < need < 4 * v_occ**2 / 2**30 + 0.3  # the matrix and a block of working rows
-    assert "smaller vocabulary" in msg
-    assert not called
-    assert peak < 50e6  # nothing of the matrix's size was allocated
-    monkeypatch.setenv("ORBSLAM_HGCN_MEMORY_LIMIT_MB", "10")
-    with pytest.raises(OrbslamError, match="but 10 MiB is available"):
-        learn_chow_liu_tree(X)

@@ -12,18 +12,20 @@ enter the spanning tree: a word never seen, or seen in every image, has zero mut
 information with every other word, so the tree over all V words (as openFABMAP builds it)
 hangs it under the root with a conditional equal to its marginal. That is what this module
 stores for such words, without computing their rows. Mutual information among the
-``V_occ`` varying words is computed exactly from co-occurrence counts (a sparse ``X^T X``
-product, one block of rows at a time) into a dense ``(V_occ, V_occ)`` float32 matrix (400 MB
-for 10k words; checked against the memory available first, see
-:mod:`orbslam_hgcn.placerec.memory`), and the maximum spanning tree is grown by Prim's
-algorithm, one vectorised ``O(V_occ)`` update per word. The stored conditionals are
-smoothed as openFABMAP does (Glover et al., ICRA 2012): ``p = (1 - 2 s) * frequency + s``
+``V_occ`` varying words is computed exactly from co-occurrence counts, one row at a time as
+Prim's algorithm asks for it (:class:`MutualInformationRows`), so no ``(V_occ, V_occ)``
+matrix is ever stored: memory is the sparse occurrence data and O(V_occ) (checked against
+the memory available first, see :mod:`orbslam_hgcn.placerec.memory`). The maximum spanning
+tree is grown by Prim's algorithm, one vectorised ``O(V_occ)`` row and update per word,
+from the root the dense matrix's ``argmax`` gives. The stored conditionals are smoothed as
+openFABMAP does (Glover et al., ICRA 2012): ``p = (1 - 2 s) * frequency + s``
 with ``s = 0.01``.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,18 +35,10 @@ from scipy.special import xlogy
 from tqdm import tqdm
 
 from orbslam_hgcn.errors import OrbslamError
-from orbslam_hgcn.placerec.memory import (
-    MI_BLOCK_ELEMENTS,
-    MI_BLOCK_ROWS,
-    check_memory,
-    chow_liu_bytes,
-    format_bytes,
-)
+from orbslam_hgcn.placerec.memory import check_memory, chow_liu_bytes, format_bytes
 from orbslam_hgcn.placerec.words import as_binary_csr
 
 log = logging.getLogger(__name__)
-
-_BLOCK_ROWS = MI_BLOCK_ROWS  # rows of the MI matrix computed per sparse product (at most)
 
 
 def _binary_entropy(p: np.ndarray) -> np.ndarray:
@@ -68,35 +62,124 @@ def mutual_information_from_counts(n11: np.ndarray, ca: np.ndarray, cb: np.ndarr
     return np.maximum(mi, 0.0)
 
 
-def mutual_information_matrix(X: sp.csr_matrix, *, block_rows: int = _BLOCK_ROWS, progress: bool = False) -> np.ndarray:
-    """(V, V) float32 pairwise mutual information of the columns of ``X`` (diagonal 0).
+class MutualInformationRows:
+    """Rows ``MI(u, .)`` of the pairwise mutual information of the columns of ``X``, on demand.
 
-    X: (N, V) binary occurrence matrix. Co-occurrences come from sparse products of one
-    block of at most ``block_rows`` columns at a time (fewer for large V), so peak extra
-    memory is O(min(block_rows * V, 2^21)) elements.
+    X: (N, V) binary occurrence matrix. A row is computed from the co-occurrence counts of
+    column ``u`` with every column (the sparse product of column ``u`` with ``X``, taken as
+    the column indices of the images that contain ``u``): the words that never occur with
+    ``u`` have a mutual information that depends only on their count, evaluated once per
+    distinct count; the few that do are evaluated from their counts. Values are those of
+    :func:`mutual_information_from_counts` with ``u``'s count first, as float32, diagonal 0:
+    the same sum of the same terms, each term looked up in a table over the N + 1 possible
+    counts (the entropies and ``p log p`` of ``count / N``), so the rows are bit for bit the
+    rows of the dense matrix. Memory: the sparse matrix (CSR and CSC) and O(V) per row.
     """
-    X = as_binary_csr(X)
-    n, v = X.shape
-    block_rows = max(1, min(block_rows, MI_BLOCK_ELEMENTS // max(v, 1)))
-    counts = np.asarray(X.sum(axis=0)).ravel()
-    Xc = X.tocsc()
-    mi = np.empty((v, v), dtype=np.float32)
-    starts = range(0, v, block_rows)
-    for a in tqdm(starts, desc="mutual information", unit="block", disable=not progress):
-        b = min(a + block_rows, v)
-        co = (Xc[:, a:b].T @ Xc).toarray()  # (b - a, V) co-occurrence counts
-        mi[a:b] = mutual_information_from_counts(co, counts[a:b, None], counts[None, :], n)
-        mi[np.arange(a, b), np.arange(a, b)] = 0.0
-    return mi
+
+    def __init__(self, X: sp.spmatrix):
+        X = as_binary_csr(X)
+        self.n_images, self.n_words = X.shape
+        self._csr = X
+        self._csc = X.tocsc()
+        self.counts = np.asarray(X.sum(axis=0)).ravel().astype(np.int64)
+        self._levels, self._level_of, self._level_size = np.unique(
+            self.counts, return_inverse=True, return_counts=True)
+        p = np.arange(self.n_images + 1, dtype=np.float64) * (1.0 / self.n_images)
+        self._entropy_of = _binary_entropy(p)  # H(count / N), as in mutual_information_from_counts
+        self._plogp_of = xlogy(p, p)  # p log p of a joint count's frequency, likewise
+
+    def _mutual_information(self, n11: np.ndarray, ca: int, cb: np.ndarray) -> np.ndarray:
+        """:func:`mutual_information_from_counts` of integer counts, by table, as float32."""
+        t = self._plogp_of
+        mi = self._entropy_of[ca] + self._entropy_of[cb]
+        for joint in (n11, ca - n11, cb - n11, self.n_images - ca - cb + n11):
+            mi += t[joint]
+        return np.maximum(mi, 0.0).astype(np.float32)
+
+    def entropy(self) -> np.ndarray:
+        """(V,) float64 entropy (nats) of each word: an upper bound of its mutual information."""
+        return self._entropy_of[self.counts]
+
+    def cooccurrence(self, u: int) -> tuple[np.ndarray, np.ndarray]:
+        """The columns that occur together with ``u`` (sorted, ``u`` included) and in how many images."""
+        images = self._csc.indices[self._csc.indptr[u]:self._csc.indptr[u + 1]]
+        starts, ends = self._csr.indptr[images], self._csr.indptr[images + 1]
+        lens = ends - starts
+        total = int(lens.sum())
+        if total == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        offsets = np.repeat(starts - np.cumsum(lens) + lens, lens) + np.arange(total)
+        cols = self._csr.indices[offsets]
+        if total * 8 > self.n_words:  # long lists: a dense count beats sorting
+            n11 = np.bincount(cols, minlength=self.n_words)
+            j = np.flatnonzero(n11)
+            return j, n11[j]
+        return np.unique(cols, return_counts=True)
+
+    def _values(self, u: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mutual information of ``u`` (float32) with a word of each distinct count that never
+        occurs with it, and with the words ``j`` that do (with ``u`` among them), and ``j``."""
+        j, n11 = self.cooccurrence(u)
+        k = len(self._levels)
+        cb = np.concatenate([self._levels, self.counts[j]])
+        n11 = np.concatenate([np.zeros(k, dtype=np.int64), n11])
+        mi = self._mutual_information(n11, int(self.counts[u]), cb)
+        return mi[:k], mi[k:], j
+
+    def row(self, u: int) -> np.ndarray:
+        """(V,) float32 mutual information of word ``u`` with every word (0 at ``u``)."""
+        apart, together, j = self._values(u)
+        out = apart[self._level_of]
+        out[j] = together
+        out[u] = 0.0
+        return out
+
+    def row_max(self, u: int) -> float:
+        """``row(u).max()`` in O(distinct counts + co-occurring words), without the row."""
+        apart, together, j = self._values(u)
+        together[j == u] = 0.0
+        alone = self._level_size - np.bincount(self._level_of[j], minlength=len(apart))
+        top = float(together.max(initial=0.0))
+        return max(top, float(apart.max(where=alone > 0, initial=0.0)))
 
 
-def maximum_spanning_tree(weights: np.ndarray, root: int = 0) -> np.ndarray:
-    """Prim's algorithm on a dense symmetric (V, V) weight matrix.
+# Mutual information computed from counts exceeds the entropy bound of its words by rounding
+# only (float64 sums, then float32): far less than this, which the root search allows for.
+_MI_BOUND_SLACK = 1e-6
 
-    Returns (V,) int64 parents, -1 at ``root``: the maximum-weight spanning tree oriented
-    away from ``root``. Ties break towards the lower vertex index.
+
+def strongest_edge_root(rows: MutualInformationRows) -> int:
+    """The lowest word whose row holds the largest mutual information of all pairs.
+
+    This is the row of ``np.argmax`` over the whole (V, V) matrix (the root openFABMAP
+    takes: an endpoint of the strongest edge), found without the matrix: rows are computed
+    in decreasing order of their word's entropy, which bounds every value of the row, and
+    the search stops at the first word whose entropy is below the largest value found.
     """
-    v = weights.shape[0]
+    h = rows.entropy()
+    best, root = -np.inf, 0
+    for u in np.argsort(-h, kind="stable"):
+        if h[u] + _MI_BOUND_SLACK < best:
+            break
+        top = rows.row_max(int(u))
+        if top > best:
+            best, root = top, int(u)
+        elif top == best:
+            root = min(root, int(u))
+    return root
+
+
+def maximum_spanning_tree(
+    row: Callable[[int], np.ndarray], v: int, root: int = 0, *, progress: bool = False
+) -> np.ndarray:
+    """Prim's algorithm on a symmetric weight matrix given row by row.
+
+    row(u): (v,) weights of vertex ``u`` to every vertex, asked once for each vertex as it
+    joins the tree (all but the last), so the matrix need never be stored. Returns (v,)
+    int64 parents, -1 at ``root``: the maximum-weight spanning tree oriented away from
+    ``root``. Ties break towards the vertex that reached the weight first and, between
+    vertices, towards the lower index.
+    """
     parent = np.full(v, -1, dtype=np.int64)
     if v <= 1:
         return parent
@@ -104,11 +187,11 @@ def maximum_spanning_tree(weights: np.ndarray, root: int = 0) -> np.ndarray:
     best = np.full(v, -np.inf)
     best_from = np.full(v, root, dtype=np.int64)
     u = root
-    for _ in range(v - 1):
+    for _ in tqdm(range(v - 1), desc="Chow-Liu tree", unit="word", disable=not progress, mininterval=1.0):
         in_tree[u] = True
-        row = weights[u]
-        better = (row > best) & ~in_tree
-        best[better] = row[better]
+        w = row(u)
+        better = (w > best) & ~in_tree
+        best[better] = w[better]
         best_from[better] = u
         best[u] = -np.inf  # in-tree vertices keep -inf, so argmax picks outside the tree
         u = int(np.argmax(best))
@@ -194,9 +277,8 @@ def tree_from_parents(
 ) -> ChowLiuTree:
     """Fill a tree's smoothed probabilities from occurrence data ``X`` (N, V) and parents.
 
-    mi: the (V, V) mutual information matrix, or (V,) the mutual information of each word
-    with its parent. independent: (V,) bool, words whose conditionals are set to their
-    marginal (no dependence on the parent).
+    mi: (V,) the mutual information of each word with its parent. independent: (V,) bool,
+    words whose conditionals are set to their marginal (no dependence on the parent).
     """
     X = as_binary_csr(X)
     n, v = X.shape
@@ -214,15 +296,26 @@ def tree_from_parents(
     p_given_p[q] = _smoothed(n11[q], counts[p], smoothing)
     p_given_not_p[q] = _smoothed(counts[q] - n11[q], n - counts[p], smoothing)
     mi_edge = np.zeros(v)
-    if mi is not None and np.ndim(mi) == 1:
+    if mi is not None:
         mi_edge[q] = np.asarray(mi)[q]
-    elif mi is not None:
-        mi_edge[q] = mi[q, p]
     return ChowLiuTree(parent=parent.astype(np.int64), p_z=p_z, p_z_given_p=p_given_p,
                        p_z_given_not_p=p_given_not_p, mi=mi_edge, n_train=n)
 
 
 CHOW_LIU_WAY_OUT = "use a smaller vocabulary or fewer training images"
+
+
+def edge_mutual_information(X: sp.spmatrix, q: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(E,) float64 of the float32 mutual information ``MI(q_e, p_e)`` of pairs of columns of
+    ``X`` (N, V), with ``q``'s count first: the entries ``[q, p]`` of the matrix whose rows
+    :class:`MutualInformationRows` gives."""
+    Xc = as_binary_csr(X).tocsc()
+    counts = np.asarray(Xc.sum(axis=0)).ravel()
+    if len(q) == 0:
+        return np.zeros(0)
+    n11 = np.asarray(Xc[:, q].multiply(Xc[:, p]).sum(axis=0)).ravel()
+    mi = mutual_information_from_counts(n11, counts[q], counts[p], Xc.shape[0])
+    return mi.astype(np.float32).astype(np.float64)
 
 
 def learn_chow_liu_tree(
@@ -234,10 +327,11 @@ def learn_chow_liu_tree(
     X: (N, V) occurrences (N training images, V words), dense or sparse; nonzero = seen.
     The spanning tree is grown over the words that vary in X (see :func:`varying_words`);
     every other word hangs under the root, independent of it. The root is an endpoint of
-    the strongest edge (as openFABMAP builds it). Before the (V_occ, V_occ) mutual
-    information is allocated, its size is checked against the memory available
-    (``memory_limit_mb``, else :func:`orbslam_hgcn.placerec.memory.available_bytes`): an
-    OrbslamError naming both and ``way_out`` when it does not fit.
+    the strongest edge (as openFABMAP builds it; :func:`strongest_edge_root`). Mutual
+    information is computed one row at a time as Prim's algorithm needs it, so memory is
+    O(V) beside the sparse data; that estimate is checked against the memory available
+    (``memory_limit_mb``, else :func:`orbslam_hgcn.placerec.memory.available_bytes`) first:
+    an OrbslamError naming both and ``way_out`` when it does not fit.
     """
     X = as_binary_csr(X)
     n, v = X.shape
@@ -245,24 +339,25 @@ def learn_chow_liu_tree(
         raise OrbslamError("Chow-Liu tree: no training images or no words")
     keep = varying_words(X)
     vk = len(keep)
-    need = chow_liu_bytes(vk)
-    log.info("Chow-Liu tree: %d training images, %d words, %d of them varying (%s for mutual information)",
-             n, v, vk, format_bytes(4 * vk * vk))
+    Xk = X[:, keep]
+    need = chow_liu_bytes(vk, Xk.nnz)
+    log.info("Chow-Liu tree: %d training images, %d words, %d of them varying (%s estimated)",
+             n, v, vk, format_bytes(need))
     check_memory(need, f"the Chow-Liu tree over the {vk} varying words (of {v})", way_out,
                  limit_mb=memory_limit_mb)
     root = 0
     parent = np.zeros(v, dtype=np.int64)
     mi_edge = np.zeros(v)
     if vk > 1:
-        mi = mutual_information_matrix(X[:, keep], progress=progress)
-        root_k = int(np.unravel_index(np.argmax(mi), mi.shape)[0])
-        parent_k = maximum_spanning_tree(mi, root=root_k)
+        rows = MutualInformationRows(Xk)
+        root_k = strongest_edge_root(rows)
+        parent_k = maximum_spanning_tree(rows.row, vk, root=root_k, progress=progress)
+        del rows
         root = int(keep[root_k])
         parent[:] = root
-        inner = parent_k >= 0
+        inner = np.flatnonzero(parent_k >= 0)
         parent[keep[inner]] = keep[parent_k[inner]]
-        mi_edge[keep[inner]] = mi[np.flatnonzero(inner), parent_k[inner]]
-        del mi
+        mi_edge[keep[inner]] = edge_mutual_information(Xk, inner, parent_k[inner])
     elif vk == 1:
         root = int(keep[0])
         parent[:] = root

@@ -15,9 +15,8 @@ Training supplies the IDF weights (BoW) or the Chow-Liu tree and the sampled new
 model (FAB-MAP). Every method yields an (n, n) matrix over the test images, scored by
 :mod:`orbslam_hgcn.placerec.metrics` against the ground-truth loop matrix.
 
-Before any detector runs, the memory each one needs is estimated (the Chow-Liu tree's
-mutual information over the words that vary in training, the (n, n) matrices) and checked
-against the memory available (:mod:`orbslam_hgcn.placerec.memory`); one that does not fit
+Before any detector runs, the memory each one needs is estimated (FAB-MAP's per-word tables
+and Chow-Liu tree, the (n, n) matrices) and checked against the memory available (:mod:`orbslam_hgcn.placerec.memory`); one that does not fit
 stops the comparison with an OrbslamError naming the way out: a smaller vocabulary, the ORB
 tree's words taken at a coarser level (``levels``), or fewer images.
 """
@@ -134,11 +133,13 @@ class TreeLevelWords:
         return f"{self.vocab!r} at level {self.level} ({self.n_words} words)"
 
 
-def varying_word_count(word_ids: list[np.ndarray], n_words: int) -> int:
-    """How many words occur in some but not all of the images ``word_ids``."""
+def varying_word_count(word_ids: list[np.ndarray], n_words: int) -> tuple[int, int]:
+    """How many words occur in some but not all of the images ``word_ids``, and how many
+    (image, word) occurrences of them there are."""
     seen = [np.unique(np.asarray(w, dtype=np.int64)) for w in word_ids]
-    counts = np.bincount(np.concatenate(seen), minlength=n_words) if seen else np.zeros(n_words)
-    return int(np.count_nonzero((counts > 0) & (counts < len(word_ids))))
+    counts = np.bincount(np.concatenate(seen), minlength=n_words) if seen else np.zeros(n_words, dtype=np.int64)
+    varying = (counts > 0) & (counts < len(word_ids))
+    return int(np.count_nonzero(varying)), int(counts[varying].sum())
 
 
 def detector_memory(method: str, words: WordData) -> tuple[int, str]:
@@ -147,8 +148,8 @@ def detector_memory(method: str, words: WordData) -> tuple[int, str]:
     n_test = len(words.test)
     sizes = f"{len(words.train)} training and {n_test} test images"
     if is_fabmap(method):
-        v_occ = varying_word_count(words.train, words.n_words)
-        return (fabmap_bytes(v_occ, words.n_words, n_test),
+        v_occ, nnz = varying_word_count(words.train, words.n_words)
+        return (fabmap_bytes(v_occ, nnz, words.n_words, n_test),
                 f"{METHOD_LABEL[method]} ({sizes}; a Chow-Liu tree over the {v_occ} of {words.n_words} "
                 f"words that vary in training)")
     return bow_bytes(n_test), f"{METHOD_LABEL[method]} ({sizes}, {words.n_words} words)"
