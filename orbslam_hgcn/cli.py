@@ -556,3 +556,37 @@ def _run_demo(args: argparse.Namespace) -> int:
     if comp.interrupted:
         return 130
     return 1 if any(not r.ok for r in comp.runs) else 0
+
+
+@subcommand
+def _add_sweep(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "sweep",
+        help="run a manifest of sequences x vocabularies x runs (x parameter sets), each run in its own process",
+        description="Run every cell of MANIFEST.yaml (sequences, vocabularies, runs, sequential, overrides, params; "
+        "see the README) as 'orbslam-hgcn run' processes, on a local Ray instance with --jobs runs at a time, on "
+        "the Ray cluster at --address, or, without Ray, in order. Results in OUT/<sequence>/<vocabulary>/<params>/"
+        "run<k>/; the table in OUT/sweep.md and OUT/sweep.json, a box plot of the ATE per sequence. Runs already "
+        "finished (their stats.json) are not run again. Exit status 0 when every run counts, 1 when some failed, "
+        "2 on a bad manifest, 130 when interrupted.",
+    )
+    p.add_argument("manifest", help="sweep manifest (YAML)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--jobs", type=int, default=1, help="runs at a time on the local Ray instance (default 1)")
+    p.add_argument("--address", default=None, help="address of an existing Ray cluster (e.g. ray://HOST:10001 or auto)")
+    p.add_argument("--no-ray", action="store_true", help="run the cells in order in this process's children, without Ray")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_run_sweep)
+
+
+def _run_sweep(args: argparse.Namespace) -> int:
+    from orbslam_hgcn.pipeline.sweep import run_sweep
+
+    sw = run_sweep(args.manifest, args.out, jobs=args.jobs, address=args.address,
+                   use_ray=False if args.no_ray else None, progress=not args.no_progress)
+    print(sw.paths["markdown"].read_text(encoding="utf-8"))
+    for path in sw.paths.values():
+        print(f"wrote {path}")
+    if sw.interrupted:
+        return 130
+    return 1 if any(not r.outcome.counts for r in sw.runs) else 0
