@@ -426,6 +426,13 @@ def _add_vocab(sub: argparse._SubParsersAction) -> None:
                    help="hgcn: do not share seed labels along feature tracks matched between consecutive "
                         "images of a sequence (shared by default)")
     t.add_argument("--keep-cache", action="store_true", help="keep the descriptor cache <out>.descriptors.npz")
+    t.add_argument("--device", default="auto",
+                   help="hgcn: torch device to train on: auto (default: a CUDA GPU when torch sees one, else the "
+                   "CPU), cpu, cuda, cuda:N")
+    t.add_argument("--jobs", type=int, default=1,
+                   help="extract the descriptors in shards on a local Ray instance with this many jobs (default 1: "
+                   "in this process)")
+    t.add_argument("--address", default=None, help="extract the descriptors on the Ray cluster at this address")
     t.set_defaults(func=_run_vocab_train)
     i = vsub.add_parser("info", help="print a vocabulary's metadata")
     i.add_argument("file", help="vocabulary file, or a shipped one: 'orb', 'hgcn', 'kmeans', 'orb10k'")
@@ -459,6 +466,7 @@ def _run_vocab_train(args: argparse.Namespace) -> int:
     vocab = train_from_images(
         args.kind, args.images, args.out, words=words, max_images=args.max_images, n_features=args.features,
         tree=tree, hgcn=hgcn, trained_on=args.trained_on, tracks=not args.no_tracks, keep_cache=args.keep_cache,
+        device=args.device, jobs=args.jobs, address=args.address,
     )
     print(vocab.metadata.describe())
     print(f"wrote {args.out}")

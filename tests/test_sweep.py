@@ -240,3 +240,55 @@ def test_a_killed_run_is_retried_once_then_recorded_as_failed(tmp_path, fake_run
     printed = capsys.readouterr().out
     assert "| bad | orb | default | 1 | n/a | n/a | n/a | n/a | n/a | X failed: run process killed" in printed
     assert sum(1 for ln in fake_run.read_text().splitlines() if "/bad/" in ln) == 2
+
+
+def test_vocab_train_extracts_in_shards_on_ray_and_trains_on_the_device_asked(renders, tmp_path, ray_local,
+                                                                             monkeypatch):
+    """Descriptor extraction in shards on Ray gives the descriptors extracted in order;
+    HGCN training with --device cpu and auto gives the same vocabulary here (no GPU: auto
+    is the CPU; with one, auto trains on it)."""
+    import numpy as np
+    import torch
+
+    from orbslam_hgcn.cli import build_parser
+    from orbslam_hgcn.config import HgcnTrainConfig
+    from orbslam_hgcn.errors import ConfigError
+    from orbslam_hgcn.pipeline.engine import Engine
+    from orbslam_hgcn.vocabulary import train
+    from orbslam_hgcn.vocabulary.hgcn import training_device
+
+    sources = [train.open_image_source(renders[1])]
+    pairs = train.select_images(sources, 6)
+    in_order = train.extract_descriptors(sources, pairs, 300, None, progress=False)
+    monkeypatch.setattr(train, "CACHE_EVERY", 2)  # three shards of two images
+    cache = tmp_path / "cache.npz"
+    with Engine(jobs=2) as engine:
+        sharded = train.extract_descriptors(sources, pairs, 300, cache, progress=False, images=[renders[1]],
+                                            engine=engine)
+    for name in ("desc", "uv", "image_ids", "groups"):
+        assert np.array_equal(getattr(in_order, name), getattr(sharded, name)), name
+    assert cache.is_file()
+
+    args = build_parser().parse_args(["vocab", "train", "--kind", "hgcn", "--images", "x", "--out", "v.npz"])
+    assert (args.device, args.jobs, args.address) == ("auto", 1, None)
+    cfg = HgcnTrainConfig(epochs=4, hidden_dim=16, n_coarse=8)
+    vocabs = {}
+    for device in ("cpu", "auto"):
+        v = train.train_vocabulary("hgcn", in_order.desc, in_order.image_ids, words=30, hgcn=cfg, device=device,
+                                   progress=False)
+        v.save(tmp_path / f"{device}.npz")
+        vocabs[device] = (v, np.load(tmp_path / f"{device}.npz"))
+    expected = "cuda" if torch.cuda.is_available() else "cpu"
+    assert vocabs["cpu"][0].metadata.stats["hgcn_device"] == "cpu"
+    assert vocabs["auto"][0].metadata.stats["hgcn_device"] == expected
+    if expected == "cpu":
+        a, b = vocabs["cpu"][1], vocabs["auto"][1]
+        assert sorted(a.files) == sorted(b.files)
+        for k in a.files:
+            if k != "_metadata":
+                assert np.array_equal(a[k], b[k]), k
+    with pytest.raises(ConfigError, match="--device"):
+        training_device("no_such_device")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="sees no CUDA GPU"):
+            training_device("cuda")
