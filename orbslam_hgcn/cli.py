@@ -509,6 +509,10 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames per run")
     _add_sequential_argument(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="make each run an 'orbslam-hgcn run' process, this many at a time on a local Ray instance "
+                   "(in order without Ray), as a one-sequence sweep (default: the runs in this process, in order)")
+    p.add_argument("--address", default=None, help="make the runs as processes on the Ray cluster at this address")
     p.set_defaults(func=_run_compare)
 
 
@@ -518,7 +522,7 @@ def _run_compare(args: argparse.Namespace) -> int:
     comp = run_comparison(
         args.path, args.out, kind=args.dataset, config=args.config, runs=args.runs, vocabs=args.vocabs,
         max_frames=args.max_frames, progress=not args.no_progress, sequential=args.sequential,
-        speed=args.speed,
+        speed=args.speed, jobs=args.jobs, address=args.address,
         on_run=lambda r: print(describe_run(r)),
     )
     print(format_markdown(comp))

@@ -32,19 +32,20 @@ def ray_local():
 
 
 # A stand-in for ``orbslam-hgcn run``: writes a stats.json whose ATE depends on the
-# vocabulary, logs each start to starts.log beside the sweep's folder, and kills itself
-# (SIGKILL) on every attempt for sequence "bad", on the first only for sequence "flaky".
+# vocabulary, logs each start to starts.log beside the output folder (named out), and
+# kills itself (SIGKILL) on every attempt for a sequence folder named "bad", on the first
+# only for one named "flaky".
 FAKE_RUN = textwrap.dedent("""\
     import json, os, signal, sys  # noqa: E401
     from pathlib import Path
     argv = sys.argv[1:]
     out = Path(argv[argv.index("--out") + 1])
     vocab = argv[argv.index("--vocab") + 1]
-    log = out.parents[4] / "starts.log"  # beside the manifest, as the sweep's output is
+    log = next(p for p in out.parents if p.name == "out").parent / "starts.log"
     starts = log.read_text().splitlines() if log.exists() else []
     with open(log, "a") as f:
         f.write(str(out) + "\\n")
-    seq = out.parts[-4]
+    seq = Path(argv[1]).name
     if seq == "bad" or (seq == "flaky" and str(out) not in starts):
         os.kill(os.getpid(), signal.SIGKILL)
     out.mkdir(parents=True, exist_ok=True)
@@ -292,3 +293,19 @@ def test_vocab_train_extracts_in_shards_on_ray_and_trains_on_the_device_asked(re
     if not torch.cuda.is_available():
         with pytest.raises(ConfigError, match="sees no CUDA GPU"):
             training_device("cuda")
+
+
+def test_compare_with_jobs_is_a_one_sequence_sweep(tmp_path, fake_run, ray_local, capsys):
+    seq = tmp_path / "flaky"
+    seq.mkdir()
+    out = tmp_path / "out"
+    code = main(["compare", str(seq), "--runs", "2", "--vocabs", "orb", "hgcn", "--out", str(out), "--jobs", "2",
+                 "--no-progress"])
+    assert code == 0
+    data = json.loads((out / "compare.json").read_text())
+    assert [(r["vocab"], r["run"], r["ok"]) for r in data["runs"]] == [
+        ("orb", 1, True), ("orb", 2, True), ("hgcn", 1, True), ("hgcn", 2, True)]
+    assert data["summary"]["hgcn"]["ate_rmse_m"]["median"] == pytest.approx(0.004)
+    assert (out / "orb" / "run2" / "stats.json").is_file() and (out / "compare_ate.png").is_file()
+    assert len(fake_run.read_text().splitlines()) == 8  # every run killed once, then made again
+    assert "| hgcn | 2/2 | 4.00 | 4.00 | 4.00 |" in capsys.readouterr().out

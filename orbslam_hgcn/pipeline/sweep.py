@@ -48,7 +48,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -329,19 +329,41 @@ def plan_runs(m: Manifest, out: str | Path) -> list[RunSpec]:
                     config = str(cfg)
                 for k in range(1, m.runs + 1):
                     run_out = cell / f"run{k}"
-                    argv = ["run", s.path, "--out", str(run_out), "--vocab", v, "--no-progress"]
-                    if s.kind:
-                        argv += ["--dataset", s.kind]
-                    if config:
-                        argv += ["--config", config]
-                    if s.max_frames:
-                        argv += ["--max-frames", str(s.max_frames)]
-                    if m.sequential:
-                        argv.append("--sequential")
-                    if m.speed is not None:
-                        argv += ["--speed", f"{m.speed:g}"]
+                    argv = run_argv(s.path, run_out, v, s.kind, config, s.max_frames, m.sequential, m.speed)
                     specs.append(RunSpec(s.name, v, ps.name, k, str(run_out), argv))
     return specs
+
+
+def run_argv(path: str | Path, out: str | Path, vocab: str, kind: str | None = None, config: str | Path | None = None,
+             max_frames: int | None = None, sequential: bool = False, speed: float | None = None) -> list[str]:
+    """The ``orbslam-hgcn run`` arguments of one run (loop closing on, no progress bar)."""
+    argv = ["run", str(path), "--out", str(out), "--vocab", vocab, "--no-progress"]
+    if kind:
+        argv += ["--dataset", kind]
+    if config:
+        argv += ["--config", str(config)]
+    if max_frames:
+        argv += ["--max-frames", str(max_frames)]
+    if sequential:
+        argv.append("--sequential")
+    if speed is not None:
+        argv += ["--speed", f"{speed:g}"]
+    return argv
+
+
+def run_processes(argvs: Sequence[tuple[list[str], str]], engine: Engine) -> Iterator[tuple[int, dict[str, Any]]]:
+    """Run ``orbslam-hgcn run`` processes ((argv, out folder) each) on the engine (inside
+    its ``with`` block): (index, :func:`execute_run`'s result) as each ends; a task Ray
+    could not run yields a result with its ``error``."""
+    import orbslam_hgcn
+
+    pythonpath = str(Path(orbslam_hgcn.__file__).resolve().parents[1])
+    tasks = [{"program": list(RUN_PROGRAM), "argv": argv, "out": out, "pythonpath": pythonpath} for argv, out in argvs]
+    for j, result in engine.imap_unordered(execute_run, tasks):
+        if isinstance(result, TaskFailed):
+            result = {"attempts": 2, "returncode": None, "error": f"task failed: {result}", "stats": None,
+                      "killed": [], "process_wall_s": None}
+        yield j, result
 
 
 def finished_stats(out: str | Path) -> dict[str, Any] | None:
@@ -571,8 +593,6 @@ def run_sweep(
     ``interrupted`` set, after writing the tables of the runs that finished."""
     from tqdm import tqdm
 
-    import orbslam_hgcn
-
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
     engine = Engine(jobs, address, use_ray)
     out = Path(out)
@@ -589,25 +609,18 @@ def run_sweep(
             todo.append(i)
     if records:
         log.info("%d of %d runs finished before; running the other %d", len(records), len(specs), len(todo))
-    pythonpath = str(Path(orbslam_hgcn.__file__).resolve().parents[1])
-    tasks = [{"program": list(RUN_PROGRAM), "argv": specs[i].argv, "out": specs[i].out, "pythonpath": pythonpath}
-             for i in todo]
     executed: list[str] = []
     interrupted = False
     names = [s.name for s in m.sequences]
     bar = tqdm(total=len(specs), initial=len(records), desc="sweep", unit="run", disable=not progress)
     try:
         with engine:
-            log.info("sweep: %d runs to make, %s", len(tasks), engine.name)
-            for j, result in engine.imap_unordered(execute_run, tasks):
+            log.info("sweep: %d runs to make, %s", len(todo), engine.name)
+            for j, result in run_processes([(specs[i].argv, specs[i].out) for i in todo], engine):
                 spec = specs[todo[j]]
                 executed.append(spec.rel)
-                if isinstance(result, TaskFailed):
-                    rec = SweepRun(spec.sequence, spec.params, outcome_of(spec, None, f"task failed: {result}", base),
-                                   spec.command, 2)
-                else:
-                    rec = SweepRun(spec.sequence, spec.params, outcome_of(spec, result["stats"], result["error"], base),
-                                   spec.command, result["attempts"])
+                rec = SweepRun(spec.sequence, spec.params, outcome_of(spec, result["stats"], result["error"], base),
+                               spec.command, result["attempts"])
                 if rec.outcome.error:
                     log.warning("%s failed: %s", spec.rel, rec.outcome.error)
                 records[todo[j]] = rec
