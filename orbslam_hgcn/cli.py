@@ -426,6 +426,13 @@ def _add_vocab(sub: argparse._SubParsersAction) -> None:
                    help="hgcn: do not share seed labels along feature tracks matched between consecutive "
                         "images of a sequence (shared by default)")
     t.add_argument("--keep-cache", action="store_true", help="keep the descriptor cache <out>.descriptors.npz")
+    t.add_argument("--device", default="auto",
+                   help="hgcn: torch device to train on: auto (default: a CUDA GPU when torch sees one, else the "
+                   "CPU), cpu, cuda, cuda:N")
+    t.add_argument("--jobs", type=int, default=1,
+                   help="extract the descriptors in shards on a local Ray instance with this many jobs (default 1: "
+                   "in this process)")
+    t.add_argument("--address", default=None, help="extract the descriptors on the Ray cluster at this address")
     t.set_defaults(func=_run_vocab_train)
     i = vsub.add_parser("info", help="print a vocabulary's metadata")
     i.add_argument("file", help="vocabulary file, or a shipped one: 'orb', 'hgcn', 'kmeans', 'orb10k'")
@@ -459,6 +466,7 @@ def _run_vocab_train(args: argparse.Namespace) -> int:
     vocab = train_from_images(
         args.kind, args.images, args.out, words=words, max_images=args.max_images, n_features=args.features,
         tree=tree, hgcn=hgcn, trained_on=args.trained_on, tracks=not args.no_tracks, keep_cache=args.keep_cache,
+        device=args.device, jobs=args.jobs, address=args.address,
     )
     print(vocab.metadata.describe())
     print(f"wrote {args.out}")
@@ -501,6 +509,10 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames per run")
     _add_sequential_argument(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="make each run an 'orbslam-hgcn run' process, this many at a time on a local Ray instance "
+                   "(in order without Ray), as a one-sequence sweep (default: the runs in this process, in order)")
+    p.add_argument("--address", default=None, help="make the runs as processes on the Ray cluster at this address")
     p.set_defaults(func=_run_compare)
 
 
@@ -510,7 +522,7 @@ def _run_compare(args: argparse.Namespace) -> int:
     comp = run_comparison(
         args.path, args.out, kind=args.dataset, config=args.config, runs=args.runs, vocabs=args.vocabs,
         max_frames=args.max_frames, progress=not args.no_progress, sequential=args.sequential,
-        speed=args.speed,
+        speed=args.speed, jobs=args.jobs, address=args.address,
         on_run=lambda r: print(describe_run(r)),
     )
     print(format_markdown(comp))
@@ -556,3 +568,37 @@ def _run_demo(args: argparse.Namespace) -> int:
     if comp.interrupted:
         return 130
     return 1 if any(not r.ok for r in comp.runs) else 0
+
+
+@subcommand
+def _add_sweep(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "sweep",
+        help="run a manifest of sequences x vocabularies x runs (x parameter sets), each run in its own process",
+        description="Run every cell of MANIFEST.yaml (sequences, vocabularies, runs, sequential, overrides, params; "
+        "see the README) as 'orbslam-hgcn run' processes, on a local Ray instance with --jobs runs at a time, on "
+        "the Ray cluster at --address, or, without Ray, in order. Results in OUT/<sequence>/<vocabulary>/<params>/"
+        "run<k>/; the table in OUT/sweep.md and OUT/sweep.json, a box plot of the ATE per sequence. Runs already "
+        "finished (their stats.json) are not run again. Exit status 0 when every run counts, 1 when some failed, "
+        "2 on a bad manifest, 130 when interrupted.",
+    )
+    p.add_argument("manifest", help="sweep manifest (YAML)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--jobs", type=int, default=1, help="runs at a time on the local Ray instance (default 1)")
+    p.add_argument("--address", default=None, help="address of an existing Ray cluster (e.g. ray://HOST:10001 or auto)")
+    p.add_argument("--no-ray", action="store_true", help="run the cells in order in this process's children, without Ray")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_run_sweep)
+
+
+def _run_sweep(args: argparse.Namespace) -> int:
+    from orbslam_hgcn.pipeline.sweep import run_sweep
+
+    sw = run_sweep(args.manifest, args.out, jobs=args.jobs, address=args.address,
+                   use_ray=False if args.no_ray else None, progress=not args.no_progress)
+    print(sw.paths["markdown"].read_text(encoding="utf-8"))
+    for path in sw.paths.values():
+        print(f"wrote {path}")
+    if sw.interrupted:
+        return 130
+    return 1 if any(not r.outcome.counts for r in sw.runs) else 0

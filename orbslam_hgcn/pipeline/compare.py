@@ -216,6 +216,40 @@ def format_markdown(c: Comparison) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _runs_on_engine(path, out, kind, config, runs, vocabs, max_frames, sequential, speed, jobs, address, on_run):
+    """The runs of a comparison as processes on the sweep's engine: (outcomes in table
+    order, dataset name, how the stages ran, interrupted)."""
+    from orbslam_hgcn.pipeline.engine import Engine
+    from orbslam_hgcn.pipeline.sweep import run_argv, run_processes
+
+    if config is not None:
+        from orbslam_hgcn.config import resolve_config
+
+        config = Path(resolve_config(config)).resolve() if Path(resolve_config(config)).is_file() else config
+    plan = [(v, i, (out / Path(v).stem / f"run{i}").resolve()) for v in vocabs for i in range(1, runs + 1)]
+    argvs = [(run_argv(Path(path).resolve(), o, v if not Path(v).is_file() else str(Path(v).resolve()), kind, config,
+                       max_frames, sequential, speed), str(o)) for v, _, o in plan]
+    found: dict[int, RunOutcome] = {}
+    name, threads, interrupted = Path(path).name, None, False
+    try:
+        with Engine(jobs, address) as engine:
+            for j, result in run_processes(argvs, engine):
+                v, i, o = plan[j]
+                stats = result["stats"]
+                if stats is not None:
+                    name = stats.get("dataset", {}).get("name", name)
+                    threads = threads or stats.get("threads")
+                if result["error"] is None and stats is not None:
+                    found[j] = outcome_from_stats(v, i, o, stats)
+                else:
+                    found[j] = RunOutcome(v, i, str(o), ok=False, error=result["error"])
+                if on_run is not None:
+                    on_run(found[j])
+    except KeyboardInterrupt:
+        interrupted = True
+    return [found[j] for j in sorted(found)], name, threads, interrupted
+
+
 def run_comparison(
     path: str | Path,
     out: str | Path,
@@ -230,6 +264,8 @@ def run_comparison(
     speed: float | None = None,
     run_fn: RunFn | None = None,
     on_run: Callable[[RunOutcome], None] | None = None,
+    jobs: int | None = None,
+    address: str | None = None,
 ) -> Comparison:
     """Run every vocabulary ``runs`` times over the dataset at ``path`` (loop closing on)
     and write compare.md, compare.json and compare_ate.png into ``out``.
@@ -240,7 +276,10 @@ def run_comparison(
     take frames no faster than this many times their timestamps' rate (None: the config's
     ``threads.speed``; see :func:`run_dataset`). run_fn: replaces
     :func:`run_dataset` (same arguments), for tests. on_run: called with each run's
-    outcome as soon as it is known (progress printing).
+    outcome as soon as it is known (progress printing). jobs, address: make each run an
+    ``orbslam-hgcn run`` process on the sweep's engine (:mod:`orbslam_hgcn.pipeline.sweep`:
+    a local Ray instance with ``jobs`` runs at a time, the Ray cluster at ``address``, or in
+    order without Ray), the same folders and tables; a killed run is made once more.
     """
     import inspect
 
@@ -267,7 +306,12 @@ def run_comparison(
     name = Path(path).name
     threads: dict[str, Any] | None = None  # how the stages ran, from the first run's stats
     interrupted = False
-    for v in vocabs:
+    if jobs is not None or address is not None:
+        if rerun_first is not None:
+            raise ConfigError("--jobs/--address make each run in its own process: no rerun recording there")
+        outcomes, name, threads, interrupted = _runs_on_engine(
+            path, out, kind, config, runs, vocabs, max_frames, sequential, speed, jobs or 1, address, on_run)
+    for v in vocabs if jobs is None and address is None else ():
         for i in range(1, runs + 1):
             if interrupted:
                 break

@@ -48,6 +48,7 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from orbslam_hgcn.config import HgcnTrainConfig
+from orbslam_hgcn.errors import ConfigError
 from orbslam_hgcn.vocabulary import hyperbolic as hyp
 from orbslam_hgcn.vocabulary.ball import BallNetwork
 from orbslam_hgcn.vocabulary.graph import two_hop_blocks
@@ -246,7 +247,7 @@ class HGCN(nn.Module):
         for s in range(0, len(h), _CHUNK):
             hh = h[s : s + _CHUNK]
             q = torch.addmm(p2[None, :], hh, protos.T, alpha=-2).add_(hh.pow(2).sum(-1, keepdim=True)).mul_(w)
-            out[s : s + _CHUNK] = (q.argmin(1, keepdim=True) if k == 1 else q.topk(k, 1, largest=False)[1]).numpy()
+            out[s : s + _CHUNK] = (q.argmin(1, keepdim=True) if k == 1 else q.topk(k, 1, largest=False)[1]).cpu().numpy()
         return out
 
     def to_numpy(self, input_scale: float) -> BallNetwork:
@@ -292,7 +293,7 @@ def split_seeds(labels: np.ndarray, groups: np.ndarray | None, holdout: float,
 def _init_scale(model: HGCN, h: torch.Tensor, protos: torch.Tensor, target: np.ndarray, m: int) -> float:
     """Set the logit scale to the value (on a log grid) that minimises the initial loss."""
     cand, mask = _candidates(model, h, protos, target, m)
-    zero = torch.zeros(len(target), dtype=torch.long)
+    zero = torch.zeros(len(target), dtype=torch.long, device=h.device)
     best = (math.inf, 1.0)
     with torch.no_grad():
         d2 = -model.candidate_logits(h, protos, cand) / model.scale
@@ -310,12 +311,26 @@ def _candidates(model: HGCN, h: torch.Tensor, protos: torch.Tensor, target: np.n
     neg = model.nearest(h.detach(), protos.detach(), min(m, len(protos)))
     cand = np.concatenate([target[:, None], neg], axis=1)
     mask = np.concatenate([np.zeros((len(target), 1), bool), neg == target[:, None]], axis=1)
-    return torch.from_numpy(cand), torch.from_numpy(mask)
+    return torch.from_numpy(cand).to(h.device), torch.from_numpy(mask).to(h.device)
+
+
+def training_device(device: str | None = None) -> torch.device:
+    """The device to train on: ``device`` as given, or for None / ``auto`` a GPU when
+    torch sees one (CUDA), else the CPU."""
+    if device in (None, "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError as exc:
+        raise ConfigError(f"--device: {exc}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"--device {device}: torch sees no CUDA GPU here; use cpu or auto")
+    return dev
 
 
 def train_hgcn(
     x: np.ndarray, adj: sp.csr_matrix, labels: np.ndarray, centres: np.ndarray, cfg: HgcnTrainConfig,
-    groups: np.ndarray | None = None, progress: bool = True,
+    groups: np.ndarray | None = None, progress: bool = True, device: str | None = None,
 ) -> tuple[HGCN, np.ndarray, dict]:
     """Train the HGCN on the labelled nodes and label every node.
 
@@ -323,22 +338,25 @@ def train_hgcn(
     loops included). labels: (N,) int64 class in [0, K) or -1 (unlabelled). centres: (K, d)
     the seed centres (the classes' prototypes are their embeddings). groups: optional (N,)
     group of every node (-1: none; a track), kept together when seeds are held out.
-    Returns (model, (N,) int64 predicted class of every node, stats dict); the model's
-    ``input_scale`` attribute holds the feature scale.
+    device: the torch device to train on (``cpu``, ``cuda``, ``cuda:1``, ...); None or
+    ``auto``: a GPU when torch sees one, else the CPU (:func:`training_device`).
+    Returns (model, (N,) int64 predicted class of every node, stats dict); the model (on
+    the CPU)'s ``input_scale`` attribute holds the feature scale.
     """
     t0 = time.perf_counter()
+    dev = training_device(device)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     if not np.any(labels >= 0):
         raise ValueError("no labelled node to train on")
     input_scale = float(np.mean(np.linalg.norm(x, axis=1))) / cfg.input_radius or 1.0
-    xt = torch.from_numpy(np.ascontiguousarray(x / input_scale, dtype=np.float32))
-    ct = torch.from_numpy(np.ascontiguousarray(centres / input_scale, dtype=np.float32))
+    xt = torch.from_numpy(np.ascontiguousarray(x / input_scale, dtype=np.float32)).to(dev)
+    ct = torch.from_numpy(np.ascontiguousarray(centres / input_scale, dtype=np.float32)).to(dev)
     train, val, test = split_seeds(labels, groups, cfg.holdout, rng)
-    model = HGCN(x.shape[1], cfg.hidden_dim, cfg)
+    model = HGCN(x.shape[1], cfg.hidden_dim, cfg).to(dev)
     model.input_scale = input_scale
-    tb = blocks_for(adj, train)
-    vb = blocks_for(adj, val) if len(val) else None
+    tb = tuple(t.to(dev) for t in blocks_for(adj, train))
+    vb = tuple(t.to(dev) for t in blocks_for(adj, val)) if len(val) else None
     y = labels[train]
 
     def accuracy(blocks, nodes: np.ndarray) -> float:
@@ -368,7 +386,7 @@ def train_hgcn(
         h = model.forward_blocks(xt[tb[0]], *tb[1:])
         cand, mask = _candidates(model, h, protos, y, cfg.candidate_classes)
         logits = model.candidate_logits(h, protos, cand).masked_fill(mask, -math.inf)
-        loss = F.cross_entropy(logits, torch.zeros(len(y), dtype=torch.long))
+        loss = F.cross_entropy(logits, torch.zeros(len(y), dtype=torch.long, device=dev))
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -386,7 +404,7 @@ def train_hgcn(
         model.load_state_dict(best[2])
     model.eval()
     t_train = time.perf_counter() - t0
-    adj_t = csr_to_torch(adj)
+    adj_t = csr_to_torch(adj).to(dev)
     with torch.no_grad():
         protos = model.prototype_points(ct)
         pred = model.nearest(model.embed_all(xt, adj_t), protos)[:, 0]
@@ -410,7 +428,9 @@ def train_hgcn(
         "heldout_accuracy": acc_of(test),
         "isolated_agreement": round(float(np.mean(iso == pred)), 4),
         "curvatures": [round(float(v), 4) for v in model.curvatures.detach()],
+        "hgcn_device": str(dev),
     }
+    model.to("cpu")
     log.info("HGCN: %d epochs (best %d) in %.1f s; seed accuracy train %s, validation %s, test %s",
              epoch, best[1], t_train, stats["labelled_accuracy"], stats["validation_accuracy"],
              stats["heldout_accuracy"])

@@ -222,12 +222,14 @@ def train_hgcn_vocabulary(
     track_ids: np.ndarray | None = None,
     trained_on: str = "",
     progress: bool = True,
+    device: str | None = None,
 ) -> HGCNVocabulary:
     """Train an HGCN vocabulary (see the module docstring).
 
     desc: (N, 32) uint8 ORB or (N, D) float descriptors. image_ids: (N,) image of every
     descriptor (the IDF documents). track_ids: optional (N,) 3D point of every descriptor
-    (-1: none). Returns the vocabulary; ``metadata.stats`` holds the stage timings, the
+    (-1: none). device: where the network trains (None: a GPU when torch sees one, else
+    the CPU; see :func:`~orbslam_hgcn.vocabulary.hgcn.train_hgcn`). Returns the vocabulary; ``metadata.stats`` holds the stage timings, the
     seed accuracies and the run-time agreement.
     """
     from orbslam_hgcn.vocabulary.hgcn import train_hgcn  # torch: imported for training only
@@ -253,7 +255,8 @@ def train_hgcn_vocabulary(
     labels, seeds = seed_labels(x, cfg, track_ids, rng)
     stats["labelled_nodes"] = int((labels >= 0).sum())
     lap("seed_kmeans")
-    model, pred, hstats = train_hgcn(x, adj, labels, seeds, cfg, groups=track_ids, progress=progress)
+    model, pred, hstats = train_hgcn(x, adj, labels, seeds, cfg, groups=track_ids, progress=progress,
+                                   device=device)
     stats.update(hstats)
     t = time.perf_counter()
     network = model.to_numpy(model.input_scale)

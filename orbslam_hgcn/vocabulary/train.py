@@ -30,6 +30,7 @@ from orbslam_hgcn.config import HgcnTrainConfig, ORBConfig, TreeTrainConfig
 from orbslam_hgcn.datasets.base import IMAGE_SUFFIXES
 from orbslam_hgcn.errors import DatasetError, OrbslamError, VocabularyError
 from orbslam_hgcn.npzfile import atomic_save_npz, read_npz
+from orbslam_hgcn.pipeline.engine import Engine
 from orbslam_hgcn.vocabulary.base import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -123,17 +124,29 @@ class TrainingData:
         return np.split(self.desc, cuts), np.split(self.uv, cuts)
 
 
+def _extract_shard(task: dict) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Descriptors of one shard of images, a task of the engine: the image sources are
+    opened again from their paths (``images``), ``pairs`` index them."""
+    sources = [open_image_source(p) for p in task["images"]]
+    _, extract = make_extractor(task["n_features"])
+    return [extract(sources[s].load(i)) for s, i in task["pairs"]]
+
+
 def extract_descriptors(
     sources: list[ImageSource],
     pairs: list[tuple[int, int]],
     n_features: int,
     cache: Path | None = None,
     progress: bool = True,
+    images: list[str | Path] | None = None,
+    engine: Engine | None = None,
 ) -> TrainingData:
     """Descriptors (and keypoint positions) of the selected images.
 
     With ``cache``, images already there (same settings) are not extracted again, and the
-    cache is updated every :data:`CACHE_EVERY` images and when interrupted.
+    cache is updated every :data:`CACHE_EVERY` images and when interrupted. With an
+    ``engine`` (and ``images``, the paths the sources were opened from) the images are
+    extracted in shards of :data:`CACHE_EVERY` on it (Ray), the cache updated after each.
     """
     name, extract = make_extractor(n_features)
     keys = [f"{sources[s].name}#{i}" for s, i in pairs]
@@ -166,6 +179,19 @@ def extract_descriptors(
     todo = [j for j, key in enumerate(keys) if key not in done]
     new = 0
     try:
+        if engine is not None and images is not None:
+            shards = [todo[a : a + CACHE_EVERY] for a in range(0, len(todo), CACHE_EVERY)]
+            tasks = [{"images": [str(p) for p in images], "pairs": [pairs[j] for j in sh], "n_features": n_features}
+                     for sh in shards]
+            for k, result in tqdm(engine.imap_unordered(_extract_shard, tasks), total=len(tasks),
+                                  desc=f"extracting ORB ({engine.name})", unit="shard", disable=not progress):
+                if isinstance(result, Exception):
+                    raise DatasetError(f"descriptor extraction failed: {result}")
+                for j, r in zip(shards[k], result):
+                    done[keys[j]] = r
+                new += len(result)
+                save_cache()
+            todo = []
         for j in tqdm(todo, desc="extracting ORB", unit="image", disable=not progress):
             s, i = pairs[j]
             done[keys[j]] = extract(sources[s].load(i))
@@ -200,12 +226,14 @@ def train_vocabulary(
     track_ids: np.ndarray | None = None,
     trained_on: str = "",
     progress: bool = True,
+    device: str | None = None,
 ) -> Vocabulary:
     """Train a vocabulary of ``kind`` (``orb``, ``hgcn`` or ``kmeans``) on descriptors.
 
     words: target word count; for ``orb`` it sets the depth ``L = round(log_k(words))``
     (a tree has up to k^L words), for ``hgcn`` and ``kmeans`` the number of words exactly.
     ``kmeans`` is trained with the ``hgcn`` settings (same PCA, k-means, search).
+    device: the torch device of HGCN training (None or ``auto``: a GPU when torch sees one).
     """
     if kind == "orb":
         from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
@@ -222,7 +250,7 @@ def train_vocabulary(
         if words:
             hc = dataclasses.replace(hc, n_words=int(words))
         return train_hgcn_vocabulary(desc, image_ids, hc, track_ids=track_ids, trained_on=trained_on,
-                                     progress=progress)
+                                     progress=progress, device=device)
     if kind == "kmeans":
         from orbslam_hgcn.vocabulary.flat import train_kmeans_vocabulary
 
@@ -247,11 +275,18 @@ def train_from_images(
     tracks: bool = False,
     keep_cache: bool = False,
     progress: bool = True,
+    device: str | None = None,
+    jobs: int = 1,
+    address: str | None = None,
 ) -> Vocabulary:
     """Extract descriptors from image sources, train a vocabulary and save it to ``out``.
 
     tracks: (hgcn) match consecutive images of each source into feature tracks whose
     descriptors share their seed label (see :mod:`orbslam_hgcn.vocabulary.tracks`).
+    device: the torch device of HGCN training (None or ``auto``: a GPU when torch sees one).
+    jobs, address: extract the descriptors in shards on Ray (a local instance with ``jobs``
+    CPUs, or the cluster at ``address``; :mod:`orbslam_hgcn.pipeline.engine`), when
+    ``jobs`` > 1 or ``address`` is given; else in this process.
     """
     out = Path(out)
     if not images:
@@ -260,7 +295,11 @@ def train_from_images(
     sources = [open_image_source(p) for p in images]
     pairs = select_images(sources, max_images)
     cache = out.with_name(out.name + ".descriptors.npz")
-    data = extract_descriptors(sources, pairs, n_features, cache, progress)
+    if jobs > 1 or address:
+        with Engine(jobs, address) as engine:
+            data = extract_descriptors(sources, pairs, n_features, cache, progress, images=list(images), engine=engine)
+    else:
+        data = extract_descriptors(sources, pairs, n_features, cache, progress)
     desc, image_ids = data.desc, data.image_ids
     if len(desc) < 2:
         raise DatasetError(f"only {len(desc)} descriptors found in {len(pairs)} images; nothing to train on")
@@ -276,7 +315,7 @@ def train_from_images(
                                for k, s in enumerate(sources))
     log.info("training a %s vocabulary on %d descriptors of %d images", kind, len(desc), len(pairs))
     vocab = train_vocabulary(kind, desc, image_ids, words=words, tree=tree, hgcn=hgcn, track_ids=track_ids,
-                             trained_on=trained_on, progress=progress)
+                             trained_on=trained_on, progress=progress, device=device)
     vocab.metadata.stats["extract_seconds"] = round(t_extract, 2)
     if track_ids is not None:
         vocab.metadata.stats["tracks_seconds"] = round(t_tracks, 2)
