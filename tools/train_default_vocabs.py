@@ -4,8 +4,11 @@ vocab_orb10k.npz).
 Training imagery: synthetic office scenes rendered by ``orbslam_hgcn.synth.sequence``
 with scene (and texture) seeds 1001..1000+S, far from the seeds evaluation sequences use
 (0 and small numbers), each seen along one generated loop round its desk, sampled sparsely
-(default 60 frames per loop) so the images cover the whole room. No TUM, EuRoC or other
-evaluation imagery is used. Every vocabulary is trained on the same descriptors
+(default 60 frames per loop) so the images cover the whole room. The shipped files use
+these only. ``--with-real`` adds real frames: the samples of KITTI odometry 00 (frames
+0-159), TUM fr3 long_office_household (19 frames) and EuRoC V1_01_easy (every 5th of
+frames 0-94) in ``../shared/data`` (``--real PATH ...`` for other sequences); those frames
+must then not be used to evaluate loop detection with the vocabularies. Every vocabulary is trained on the same descriptors
 (ORB-SLAM's extractor, 1000 features per image); the HGCN's seed labels are shared along
 feature tracks matched between consecutive frames of each scene. ``kmeans`` is the HGCN
 vocabulary's ablation (its PCA and seed k-means at the same word count, without the graph
@@ -15,6 +18,7 @@ arguments give the same files (up to the creation date in the metadata).
     python tools/train_default_vocabs.py                 # render, extract, train both
     python tools/train_default_vocabs.py --kinds hgcn    # only the HGCN vocabulary
     python tools/train_default_vocabs.py --kinds kmeans orb10k
+    python tools/train_default_vocabs.py --with-real --out-dir DIR   # real frames as well
 
 Rendered frames and the descriptor cache stay in ``--work-dir`` for later runs.
 """
@@ -38,6 +42,13 @@ from orbslam_hgcn.vocabulary.train import extract_descriptors, open_image_source
 log = logging.getLogger("train_default_vocabs")
 
 FIRST_SCENE_SEED = 1001
+SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+# (folder under SHARED_DATA, every n-th frame, description for the metadata)
+REAL_SAMPLES = [
+    ("kitti00_first160/sequences/00", 1, "KITTI odometry 00 frames 0-159"),
+    ("tum_fr3_long_office_household_sample", 1, "TUM RGB-D fr3 long_office_household, 19 sample frames"),
+    ("euroc_V1_01_easy_first95", 5, "EuRoC V1_01_easy cam0, every 5th of frames 0-94"),
+]
 
 
 def render_training_scenes(work: Path, n_scenes: int, frames: int, progress: bool) -> list[Path]:
@@ -63,6 +74,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--orb-levels", type=int, default=TreeTrainConfig.levels)
     ap.add_argument("--no-tracks", action="store_true",
                     help="hgcn: no shared labels along feature tracks of consecutive frames")
+    ap.add_argument("--with-real", action="store_true",
+                    help="train on the real samples in ../shared/data as well")
+    ap.add_argument("--real", nargs="+", type=Path, default=None,
+                    help="train on these real sequences as well (every frame)")
     ap.add_argument("--out-dir", type=Path, default=None, help="write here instead of orbslam_hgcn/data/")
     ap.add_argument("--render-only", action="store_true", help="only render the training scenes")
     args = ap.parse_args(argv)
@@ -76,13 +91,27 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     sources = [open_image_source(f) for f in folders]
     pairs = select_images(sources, None)
-    cache = args.work_dir / f"descriptors_{args.scenes}x{args.frames}_{args.features}.npz"
-    data = extract_descriptors(sources, pairs, args.features, cache)
-    desc, image_ids = data.desc, data.image_ids
     trained_on = (f"synthetic office scenes (orbslam_hgcn.synth.sequence, loop trajectory, noise 2, "
                   f"exposure drift 0.1), scene/texture seeds {FIRST_SCENE_SEED}..{FIRST_SCENE_SEED + args.scenes - 1}, "
-                  f"{args.frames} frames each; no evaluation imagery")
-    log.info("%d descriptors from %d images", len(desc), len(pairs))
+                  f"{args.frames} frames each")
+    real = [(p, 1, str(p)) for p in args.real or []]
+    if args.with_real:
+        real += [(SHARED_DATA / sub, step, text) for sub, step, text in REAL_SAMPLES]
+    missing = [str(p) for p, _, _ in real if not p.exists()]
+    if missing:
+        ap.error(f"real sequences not found: {', '.join(missing)}")
+    for path, step, text in real:
+        sources.append(open_image_source(path))
+        k = len(sources) - 1
+        pairs += [(k, i) for i in range(0, sources[k].n, step)]
+    n_real = len(pairs) - sum(s.n for s in sources[: len(folders)])
+    trained_on += ("; real: " + "; ".join(f"{text} ({sum(1 for s, _ in pairs if s == len(folders) + j)} images)"
+                                          for j, (_, _, text) in enumerate(real))) if real else "; no evaluation imagery"
+    tag = f"_real{n_real}" if real else ""
+    cache = args.work_dir / f"descriptors_{args.scenes}x{args.frames}{tag}_{args.features}.npz"
+    data = extract_descriptors(sources, pairs, args.features, cache)
+    desc, image_ids = data.desc, data.image_ids
+    log.info("%d descriptors from %d images (%d real)", len(desc), len(pairs), n_real)
     for kind in args.kinds:
         out = SHIPPED[kind] if args.out_dir is None else args.out_dir / SHIPPED[kind].name
         t = time.perf_counter()
