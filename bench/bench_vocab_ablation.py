@@ -23,8 +23,8 @@ for SURF), ``--tracks on off``, ``--words`` (default: the largest multiple of 10
 leaves at least ``--per-word`` training descriptors per word).
 
 Tracks join the descriptors matched between consecutive training images (mutual nearest
-neighbours, ratio test, RANSAC fundamental matrix): ``build_tracks`` for ORB, the same
-rules with the Euclidean distance for SIFT. Consecutive training images overlap by
+neighbours, ratio test, RANSAC fundamental matrix): ``build_tracks``, by Hamming distance
+for ORB and Euclidean distance for SIFT. Consecutive training images overlap by
 ``1 - step / 640`` of their width; the share of descriptors in tracks is printed.
 
 The HGCN's training figures are printed too (seed accuracy on the training, validation
@@ -50,8 +50,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from bench_lcd import WIN, strip_world
 from orbslam_hgcn.config import FabmapConfig, HgcnTrainConfig, ORBConfig
@@ -95,64 +93,12 @@ class Extractor:
         return np.ascontiguousarray(desc, np.float32), np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
 
 
-def match_pair_float(d1: np.ndarray, d2: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, ratio: float = 0.8,
-                     ransac_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
-    """``tracks.match_pair``'s rules (mutual nearest neighbours, ratio test, RANSAC
-    fundamental matrix) for float descriptors under the Euclidean distance."""
-    empty = np.zeros(0, np.int64)
-    if len(d1) < 8 or len(d2) < 8:
-        return empty, empty
-    d2sq = (np.einsum("nd,nd->n", d1, d1)[:, None] + np.einsum("nd,nd->n", d2, d2)[None, :] - 2.0 * d1 @ d2.T)
-    dist = np.sqrt(np.maximum(d2sq, 0.0))
-    nn12 = np.argmin(dist, axis=1)
-    two = np.partition(dist, 1, axis=1)[:, :2]
-    nn21 = np.argmin(dist, axis=0)
-    i1 = np.flatnonzero((nn21[nn12] == np.arange(len(d1))) & (two[:, 0] < ratio * two[:, 1]))
-    i2 = nn12[i1]
-    if len(i1) < 8:
-        return empty, empty
-    _, mask = cv2.findFundamentalMat(uv1[i1].astype(np.float64), uv2[i2].astype(np.float64), cv2.FM_RANSAC,
-                                     ransac_px, 0.999)
-    if mask is None:
-        return empty, empty
-    inl = mask.reshape(-1).astype(bool)
-    return i1[inl], i2[inl]
+def sequence_tracks(desc: list[np.ndarray], uv: list[np.ndarray]) -> np.ndarray:
+    """Track id of every descriptor of one sequence (``tracks.build_tracks``: binary
+    descriptors by Hamming distance, float ones by Euclidean distance)."""
+    from orbslam_hgcn.vocabulary.tracks import build_tracks
 
-
-def float_tracks(desc: list[np.ndarray], uv: list[np.ndarray]) -> np.ndarray:
-    """Track id of every descriptor of one sequence of float-descriptor images (-1: none),
-    with ``tracks.build_tracks``'s rules (consecutive images matched, connected components,
-    a component holding two descriptors of one image dropped)."""
-    sizes = np.array([len(d) for d in desc], np.int64)
-    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    total = int(sizes.sum())
-    rows, cols = [], []
-    for i in range(len(desc) - 1):
-        a, b = match_pair_float(desc[i], desc[i + 1], uv[i], uv[i + 1])
-        rows.append(offsets[i] + a)
-        cols.append(offsets[i + 1] + b)
-    track = np.full(total, -1, np.int64)
-    if not rows or not sum(len(r) for r in rows):
-        return track
-    r, c = np.concatenate(rows), np.concatenate(cols)
-    graph = sp.coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(total, total))
-    _, comp = connected_components(graph, directed=False)
-    size = np.bincount(comp)
-    image = np.repeat(np.arange(len(desc)), sizes)
-    key = np.unique(comp * np.int64(len(desc)) + image)
-    distinct_images = np.bincount(key // len(desc), minlength=len(size))
-    good = (size >= 2) & (distinct_images == size)
-    ok = good[comp]
-    _, track[ok] = np.unique(comp[ok], return_inverse=True)
-    return track
-
-
-def sequence_tracks(kind: str, desc: list[np.ndarray], uv: list[np.ndarray]) -> np.ndarray:
-    if kind == "orb":
-        from orbslam_hgcn.vocabulary.tracks import build_tracks
-
-        return build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
-    return float_tracks(desc, uv)
+    return build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
 
 
 # --------------------------------------------------------------------------- vocabularies
@@ -344,7 +290,7 @@ def main() -> None:
             te = [extractors[kind](im)[0] for im in test]
             t_feat = time.perf_counter() - t0
             t0 = time.perf_counter()
-            tracks = sequence_tracks(kind, [d for d, _ in tr], [u for _, u in tr]) if need_tracks else None
+            tracks = sequence_tracks([d for d, _ in tr], [u for _, u in tr]) if need_tracks else None
             t_tracks = time.perf_counter() - t0
             n_desc = sum(len(d) for d, _ in tr)
             share = float(np.mean(tracks >= 0)) if tracks is not None else float("nan")

@@ -222,6 +222,28 @@ def test_tracks_from_consecutive_real_frames():
     assert len(pairs) == linked.sum()  # one descriptor per image in every track
 
 
+@pytest.mark.skipif(not vf.available(), reason="real sample data not found")
+def test_tracks_of_float_descriptors():
+    """SIFT (float) descriptors are matched by Euclidean distance under the same rules."""
+    import cv2
+
+    from orbslam_hgcn.vocabulary.tracks import match_pair
+
+    sift = cv2.SIFT_create(nfeatures=800)
+
+    def describe(path):
+        kps, desc = sift.detectAndCompute(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE), None)
+        return desc.astype(np.float32), np.array([k.pt for k in kps], np.float32)
+
+    tum = sorted(vf.TUM_RGB.glob("*.png"))
+    (d1, uv1), (d2, uv2) = describe(tum[4]), describe(tum[5])
+    a, b = match_pair(d1, d2, uv1, uv2)
+    assert len(a) > 150 and len(np.unique(a)) == len(a)
+    assert np.median(np.linalg.norm(uv1[a] - uv2[b], axis=1)) < 3.0
+    de, uve = describe(sorted(vf.EUROC_RGB.glob("*.png"))[0])
+    assert len(match_pair(d1, de, uv1, uve)[0]) < 20
+
+
 def test_hgcn_vocabulary_on_float_descriptors(tmp_path):
     from orbslam_hgcn.vocabulary import load_vocabulary
     from orbslam_hgcn.vocabulary.hgcn_vocab import train_hgcn_vocabulary

@@ -2,8 +2,9 @@
 
 The paper seeds one label on all descriptors of the same 3D point seen in several
 keyframes. Without a map, tracks are built by matching each training image to the next
-image of the same sequence: mutual nearest neighbours in Hamming distance that pass
-Lowe's ratio test (IJCV 2004) and a distance bound, verified by a RANSAC fundamental
+image of the same sequence: mutual nearest neighbours in Hamming distance (binary
+descriptors; Euclidean for float ones such as SIFT) that pass Lowe's ratio test (IJCV 2004)
+and, for binary descriptors, a distance bound, verified by a RANSAC fundamental
 matrix (``cv2.findFundamentalMat``); matched descriptors are joined into tracks (connected
 components of the match graph).
 """
@@ -27,16 +28,24 @@ def match_pair(d1: np.ndarray, d2: np.ndarray, uv1: np.ndarray, uv2: np.ndarray,
                ratio: float = 0.8, ransac_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     """Verified matches between two images: ((K,) indices into image 1, (K,) into image 2).
 
-    d1, d2: (N1, 32), (N2, 32) uint8 descriptors; uv1, uv2: (N, 2) pixel positions.
+    d1, d2: (N1, 32), (N2, 32) uint8 descriptors (Hamming distance, at most
+    ``max_hamming``) or (N, D) float ones (Euclidean distance, no bound); uv1, uv2: (N, 2)
+    pixel positions.
     """
     empty = np.zeros(0, np.int64)
     if len(d1) < 8 or len(d2) < 8:
         return empty, empty
-    dist = hamming_matrix(d1, d2)
+    if d1.dtype == np.uint8:
+        dist = hamming_matrix(d1, d2)
+        bound = max_hamming
+    else:
+        a, b = np.asarray(d1, np.float32), np.asarray(d2, np.float32)
+        sq = np.einsum("nd,nd->n", a, a)[:, None] + np.einsum("nd,nd->n", b, b)[None, :] - 2.0 * a @ b.T
+        dist, bound = np.sqrt(np.maximum(sq, 0.0)), np.inf
     nn12 = np.argmin(dist, axis=1)
     two = np.partition(dist, 1, axis=1)[:, :2]
     nn21 = np.argmin(dist, axis=0)
-    i1 = np.flatnonzero((nn21[nn12] == np.arange(len(d1))) & (two[:, 0] <= max_hamming)
+    i1 = np.flatnonzero((nn21[nn12] == np.arange(len(d1))) & (two[:, 0] <= bound)
                         & (two[:, 0] < ratio * two[:, 1]))
     i2 = nn12[i1]
     if len(i1) < 8:
@@ -53,7 +62,7 @@ def build_tracks(desc: list[np.ndarray], uv: list[np.ndarray], groups: np.ndarra
                  **match_kw) -> np.ndarray:
     """Track id of every descriptor of a list of images (-1: seen once).
 
-    desc, uv: per image, (N_i, 32) uint8 descriptors and (N_i, 2) positions. groups: (I,)
+    desc, uv: per image, (N_i, 32) uint8 (or (N_i, D) float) descriptors and (N_i, 2) positions. groups: (I,)
     sequence of each image; images i and i+1 of the same group are matched.
     Returns (sum N_i,) int64 track ids; a track never holds two descriptors of one image.
     """
