@@ -52,7 +52,7 @@ def test_compare_figures_match_each_run(cache, tmp_path, capsys):
     assert len(per_run) == len(runs)
     for r, row in zip(runs, per_run):
         if r["vocab"] == str(missing):
-            assert not r["ok"] and "no_such_vocab.npz" in r["error"] and row[7].startswith("failed")
+            assert not r["ok"] and "no_such_vocab.npz" in r["error"] and row[7].startswith("X failed")
             continue
         stats = json.loads((out / r["vocab"] / f"run{r['run']}" / "stats.json").read_text())
         rmse = stats["ate_sim3"]["keyframes"]["rmse_m"]

@@ -120,17 +120,10 @@ def test_vocabulary_must_fit_the_features(scene):
 def test_lcd_command_with_a_vocabulary_file(scene, tmp_path, capsys):
     """``orbslam-hgcn lcd`` end to end with a real (small) ORB-tree vocabulary file."""
     from orbslam_hgcn.cli import main
-    from orbslam_hgcn.placerec.data import save_ground_truth
     from orbslam_hgcn.vocabulary import orb_tree
 
     train, test, route, gt = scene
-    folders = {}
-    for name, images in (("train", train), ("test", test)):
-        folders[name] = tmp_path / name
-        folders[name].mkdir()
-        for i, im in enumerate(images):
-            cv2.imwrite(str(folders[name] / f"{i:04d}.png"), im)
-    save_ground_truth(folders["test"] / "loop_gt.npy", gt)
+    folders = _write_scene(scene, tmp_path)
     describer = Describer("orb", n_features=300)
     desc = [describer(im) for im in train]
     vocab = orb_tree.train_tree_vocabulary(

@@ -133,6 +133,18 @@ def summarise(runs: list[RunOutcome], vocabs: Sequence[str]) -> dict[str, dict[s
     return out
 
 
+def run_status(r: RunOutcome) -> tuple[str, str]:
+    """(status, ATE cell in mm) of a run for the tables: "ok", "X failed: <error>" when it
+    stopped with an error, "X failed: <why>" when it ran but fails the bar (its ATE then
+    flagged "(X)"), "ok (no ATE: <why>)"."""
+    status = "ok" if r.ok else f"X failed: {r.error}"
+    if r.ok and r.failed:
+        status = f"X failed: {r.failed}"
+    elif r.ok and r.ate_rmse_m is None:
+        status = f"ok (no ATE: {r.ate_error})"
+    return status, _mm(r.ate_rmse_m) + (" (X)" if r.ok and r.failed and r.ate_rmse_m is not None else "")
+
+
 def _mm(x: float | None) -> str:
     return "n/a" if x is None else f"{1000.0 * x:.2f}"
 
@@ -202,12 +214,7 @@ def format_markdown(c: Comparison) -> str:
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in c.runs:
-        status = "ok" if r.ok else f"failed: {r.error}"
-        if r.ok and r.failed:
-            status = f"X failed: {r.failed}"
-        elif r.ok and r.ate_rmse_m is None:
-            status = f"ok (no ATE: {r.ate_error})"
-        ate = _mm(r.ate_rmse_m) + (" (X)" if r.ok and r.failed and r.ate_rmse_m is not None else "")
+        status, ate = run_status(r)
         lines.append(
             f"| {r.vocab} | {r.run} | {ate} | {_num(r.loops_closed)} | {_num(r.frames)} | "
             f"{_num(r.frames_lost)} | {_num(r.fps, '{:.2f}')} | {status.replace('|', '/')} | {_tracked(r)} | "

@@ -58,7 +58,7 @@ import yaml
 
 from orbslam_hgcn.config import load_yaml, resolve_config, section_from_yaml
 from orbslam_hgcn.errors import ConfigError, where
-from orbslam_hgcn.pipeline.compare import MAX_UNTRACKED_SHARE, RunOutcome, outcome_from_stats, summarise
+from orbslam_hgcn.pipeline.compare import MAX_UNTRACKED_SHARE, RunOutcome, outcome_from_stats, run_status, summarise
 from orbslam_hgcn.pipeline.engine import Engine, TaskFailed
 
 log = logging.getLogger(__name__)
@@ -536,12 +536,7 @@ def format_markdown(sw: Sweep) -> str:
     ]
     for r in sw.runs:
         o = r.outcome
-        status = "ok" if o.ok else f"X failed: {o.error}"
-        if o.ok and o.failed:
-            status = f"X failed: {o.failed}"
-        elif o.ok and o.ate_rmse_m is None:
-            status = f"ok (no ATE: {o.ate_error})"
-        ate = _mm(o.ate_rmse_m) + (" (X)" if o.ok and o.failed and o.ate_rmse_m is not None else "")
+        status, ate = run_status(o)
         tracked = o.tracked / o.frames if o.tracked is not None and o.frames else None
         lines.append(f"| {r.sequence} | {o.vocab} | {r.params} | {o.run} | {ate} | {_pct(tracked)} | "
                      f"{'n/a' if o.resets is None else o.resets} | "
