@@ -35,12 +35,17 @@ Parts (``--parts``):
   and after the correction);
 * ``reloc``: ``fr3_replay`` with frames 2310-2339 (77-78 s, inside the revisit) replaced
   by 30 frames of ``elsewhere``: frames lost, the frame where tracking resumed, and how
-  many frames after the splice that was (target: within 10).
+  many frames after the splice that was (target: within 10);
+* ``loop``: the ``hgcn`` / ``orb`` part with each vocabulary of ``--vocabs`` (default:
+  ``hgcn kmeans orb orb10k``, the shipped ones: HGCN, its k-means ablation at the same
+  size, the ORB tree and the ORB tree at about that size); with ``--vocabs``, ``false``
+  and ``reloc`` run once per vocabulary of the list as well.
 
 Vocabularies: ``--vocab-hgcn`` / ``--vocab-orb`` files, default the shipped ones.
 
-    python bench/bench_loop.py [--parts hgcn orb noloop false reloc] [--cache DIR]
-                               [--vocab-hgcn FILE] [--vocab-orb FILE] [--max-frames N] [--json FILE]
+    python bench/bench_loop.py [--parts hgcn orb noloop false reloc loop] [--cache DIR]
+                               [--vocab-hgcn FILE] [--vocab-orb FILE] [--vocabs NAME ...]
+                               [--max-frames N] [--json FILE]
 """
 
 from __future__ import annotations
@@ -259,10 +264,13 @@ def sub(out: Path | None, name: str) -> Path | None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--parts", nargs="+", default=["hgcn", "orb", "noloop", "false", "reloc", "circle"],
-                    choices=("hgcn", "orb", "noloop", "false", "reloc", "circle"))
+                    choices=("hgcn", "orb", "noloop", "false", "reloc", "circle", "loop"))
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "orbslam_hgcn" / "loop_bench")
     ap.add_argument("--vocab-hgcn", default="hgcn")
     ap.add_argument("--vocab-orb", default="orb")
+    ap.add_argument("--vocabs", nargs="+", default=None,
+                    help="vocabularies (shipped names or files) of the loop part, and of false and reloc when "
+                         "given (default for loop: hgcn kmeans orb orb10k)")
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--noise", type=float, default=2.0,
                     help="sensor noise sigma in grey levels of every sequence (default 2; 0: clean renders)")
@@ -274,6 +282,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("orbslam_hgcn.loop").setLevel(logging.INFO)
     vocabs = {"hgcn": args.vocab_hgcn, "orb": args.vocab_orb}
+    listed = args.vocabs or ["hgcn", "kmeans", "orb", "orb10k"]
     results: dict[str, dict] = {}
     look = (args.noise, args.exposure_drift)
     print(f"sequences rendered with sensor noise {args.noise:g} grey levels and exposure drift {args.exposure_drift:g}")
@@ -283,14 +292,19 @@ def main(argv: list[str] | None = None) -> int:
         if part in ("hgcn", "orb"):
             results[part] = r = run(main_seq, vocabs[part], True, args.max_frames, sub(args.out, part))
             print_run(f"[{part}] fr3_replay, loop closing on, {part} vocabulary", r, gt)
+        elif part == "loop":
+            for name in listed:
+                results[f"loop_{name}"] = r = run(main_seq, vocabs.get(name, name), True, args.max_frames,
+                                                  sub(args.out, f"loop_{Path(name).stem}"))
+                print_run(f"[loop] fr3_replay, loop closing on, {name} vocabulary", r, gt)
         elif part == "noloop":
             results[part] = r = run(main_seq, vocabs["hgcn"], False, args.max_frames, sub(args.out, part))
             print_run("[noloop] fr3_replay, loop closing off", r, gt)
         elif part == "false":
             seq = open_sequence("tum", ensure("fr3_repeated", args.cache, *look))
-            for kind in ("hgcn", "orb"):
-                out = sub(args.out, f"false_{kind}")
-                results[f"false_{kind}"] = r = run(seq, vocabs[kind], True, args.max_frames, out)
+            for kind in args.vocabs or ("hgcn", "orb"):
+                out = sub(args.out, f"false_{Path(kind).stem}")
+                results[f"false_{kind}"] = r = run(seq, vocabs.get(kind, kind), True, args.max_frames, out)
                 print_run(f"[false] fr3_repeated (repeated texture, no revisit), {kind} vocabulary", r, seq.ground_truth)
         elif part == "circle":
             seq = open_sequence("tum", ensure("circle", args.cache, *look))
@@ -299,13 +313,17 @@ def main(argv: list[str] | None = None) -> int:
         elif part == "reloc":
             other = open_sequence("tum", ensure("elsewhere", args.cache, *look))
             seq = Spliced(main_seq, other, *SPLICE)
-            results[part] = r = run(seq, vocabs["hgcn"], True, args.max_frames, sub(args.out, part))
-            print_run(f"[reloc] fr3_replay with frames {SPLICE[0]}-{SPLICE[1] - 1} from another room", r, gt)
-            lost = r["lost_frames"]
-            resumed = min((f for f in r["ok_frames"] if f >= SPLICE[1]), default=-1)
-            print(f"  lost frames: {len(lost)} in all ({len([f for f in lost if SPLICE[0] <= f < SPLICE[1]])} of the "
-                  f"30 spliced); first lost {lost[0] if lost else '-'}; tracking back at frame {resumed}, "
-                  f"{resumed - SPLICE[1]} frames after the camera is back in mapped space (target <= 10)")
+            for kind in args.vocabs or ("hgcn",):
+                key = part if args.vocabs is None else f"{part}_{kind}"
+                results[key] = r = run(seq, vocabs.get(kind, kind), True, args.max_frames,
+                                       sub(args.out, f"{part}_{Path(kind).stem}"))
+                print_run(f"[reloc] fr3_replay with frames {SPLICE[0]}-{SPLICE[1] - 1} from another room, "
+                          f"{kind} vocabulary", r, gt)
+                lost = r["lost_frames"]
+                resumed = min((f for f in r["ok_frames"] if f >= SPLICE[1]), default=-1)
+                print(f"  lost frames: {len(lost)} in all ({len([f for f in lost if SPLICE[0] <= f < SPLICE[1]])} "
+                      f"of the 30 spliced); first lost {lost[0] if lost else '-'}; tracking back at frame {resumed}, "
+                      f"{resumed - SPLICE[1]} frames after the camera is back in mapped space (target <= 10)")
     if args.json:
         for r in results.values():
             r.pop("ok_frames", None)
