@@ -187,7 +187,7 @@ def main() -> int:
     cache = Path(a.cache)
 
     def seq(name: str) -> Sequence:
-        return open_sequence("tum", render_sequence(cache / name, SEQUENCES[name], progress=False))
+        return open_sequence("tum", render_sequence(cache / name, SEQUENCES[name], progress=False, cache=True))
 
     print(f"bench_atlas: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} at start")
     results: dict = {}

@@ -97,7 +97,7 @@ def ensure(name: str, cache: Path, noise: float = 0.0, drift: float = 0.0) -> Pa
         opts = SEQUENCES[name]
     folder = name if noise == 0 and drift == 0 else f"{name}_noise{noise:g}_drift{drift:g}"
     opts = dataclasses.replace(opts, noise=noise, exposure_drift=drift)
-    return render_sequence(cache / folder, opts, progress=True)
+    return render_sequence(cache / folder, opts, progress=True, cache=True)
 
 
 class Spliced(Sequence):

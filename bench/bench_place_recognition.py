@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     for seed in args.scene_seeds:
         opts = SynthOptions(trajectory="replay", gt=str(gt_file), fps=args.fps, scene_seed=seed,
                             noise=2.0, exposure_drift=0.1, seed=seed)
-        seq_dirs.append(render_sequence(args.cache_dir / f"office{seed}_{name}_{args.fps:g}fps", opts, progress=True))
+        seq_dirs.append(render_sequence(args.cache_dir / f"office{seed}_{name}_{args.fps:g}fps", opts, progress=True, cache=True))
     if args.render_only:
         return 0
     extractor = ORBExtractor()

@@ -273,7 +273,7 @@ def ensure_sequence(name: str, cache: Path) -> Path:
 
     options = SynthOptions(trajectory="replay", gt=str(FR3_GT)) if name == "fr3_replay" else SynthOptions()
     out = cache / name
-    render_sequence(out, options, progress=True)
+    render_sequence(out, options, progress=True, cache=True)
     return out
 
 

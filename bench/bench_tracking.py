@@ -47,7 +47,7 @@ TARGETS = {"fr3_replay": 0.05, "loop_default": 0.03}  # keyframe ATE RMSE target
 
 def ensure_sequence(name: str, cache: Path) -> Path:
     out = cache / name
-    render_sequence(out, SEQUENCES[name](), progress=True)
+    render_sequence(out, SEQUENCES[name](), progress=True, cache=True)
     return out
 
 

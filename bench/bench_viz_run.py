@@ -40,7 +40,7 @@ RERUN_THREADS = ("ChunkBatcher", "RecordingStream", "file_writer", "tokio", "jem
 
 def ensure_loop_default(cache: Path) -> Path:
     out = cache / "loop_default"
-    render_sequence(out, SynthOptions(), progress=True)
+    render_sequence(out, SynthOptions(), progress=True, cache=True)
     return out
 
 

@@ -1,5 +1,6 @@
 """Synthetic sequence renderer: exact geometry, occlusion, determinism, trajectories, outputs."""
 
+import dataclasses
 import json
 
 import cv2
@@ -262,6 +263,17 @@ def test_replay_sequence_outputs(tmp_path, replay_gt):
     assert loop.shape == (3, 3) and loop.all()
     meta = json.loads((out / "scene.json").read_text())
     assert meta["options"]["trajectory"] == "replay" and meta["frames"] == 3
+    # The same trajectory from another place (another checkout) is the same sequence: kept.
+    moved = tmp_path / "elsewhere" / "groundtruth.txt"
+    moved.parent.mkdir()
+    moved.write_bytes(replay_gt.read_bytes())
+    stamp = (out / "scene.json").stat().st_mtime_ns
+    render_sequence(tmp_path / "seq", dataclasses.replace(opts, gt=str(moved)), progress=False)
+    assert (out / "scene.json").stat().st_mtime_ns == stamp
+    # Another trajectory is another sequence.
+    moved.write_text("".join(replay_gt.read_text().splitlines(keepends=True)[:-1]))
+    with pytest.raises(DatasetError, match="not empty"):
+        render_sequence(tmp_path / "seq", dataclasses.replace(opts, gt=str(moved)), progress=False)
 
 
 def test_same_seed_same_bytes_and_seeds_matter(tmp_path):

@@ -34,6 +34,7 @@ files.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import shutil
@@ -362,11 +363,17 @@ def _json_default(x):
 
 def _meta_options(options: SynthOptions) -> dict:
     """JSON-able options for scene.json; the newer fields only when they differ from their
-    defaults (older sequences keep matching their cache)."""
+    defaults (older sequences keep matching their cache); the ground truth of a replay by
+    the SHA-256 of its file."""
     d = dataclasses.asdict(options)
     for f in dataclasses.fields(SynthOptions)[_FIRST_NEW_FIELD:]:
         if d[f.name] == f.default:
             del d[f.name]
+    if d.get("gt") and Path(d["gt"]).is_file():
+        # The replayed trajectory by its content, so that a render stays the same sequence
+        # wherever the file lies (another checkout, a moved folder); scene.json's
+        # trajectory info keeps the path.
+        d["gt"] = "sha256:" + hashlib.sha256(Path(d["gt"]).read_bytes()).hexdigest()
     return json.loads(json.dumps(d, default=_json_default))
 
 
