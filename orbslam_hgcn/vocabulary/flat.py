@@ -203,11 +203,16 @@ class KMeansVocabulary(PCAVocabulary):
                 "nprobe": np.array(self.nprobe, np.int64)}
 
     @classmethod
-    def _from_state(cls, arrays: dict[str, np.ndarray], metadata: VocabularyMetadata, path: Path) -> KMeansVocabulary:
+    def _centroid_args(cls, arrays: dict[str, np.ndarray], metadata: VocabularyMetadata, path: Path) -> tuple:
+        """The constructor's positional arguments, from checked arrays."""
         pca = cls._check_pca_state(arrays, metadata, path, ("centroids", "ivf_centroids", "nprobe"))
         cls._check_points(arrays, path, "centroids", "ivf_centroids", pca.dim, len(arrays["idf"]))
-        return cls(pca, arrays["centroids"], arrays["coarse_centroids"], arrays["word_coarse"],
-                   arrays["ivf_centroids"], int(arrays["nprobe"]), arrays["idf"], metadata)
+        return (pca, arrays["centroids"], arrays["coarse_centroids"], arrays["word_coarse"],
+                arrays["ivf_centroids"], int(arrays["nprobe"]), arrays["idf"], metadata)
+
+    @classmethod
+    def _from_state(cls, arrays: dict[str, np.ndarray], metadata: VocabularyMetadata, path: Path) -> KMeansVocabulary:
+        return cls(*cls._centroid_args(arrays, metadata, path))
 
 
 def check_training_input(desc: np.ndarray, image_ids: np.ndarray, n_words: int) -> tuple[np.ndarray, np.ndarray, str]:

@@ -45,7 +45,7 @@ from orbslam_hgcn.vocabulary.ball import BallNetwork, ball_weights
 from orbslam_hgcn.vocabulary.base import VocabularyMetadata, now_iso, require
 from orbslam_hgcn.vocabulary.bow import idf_from_documents
 from orbslam_hgcn.vocabulary.flat import (
-    PCAVocabulary,
+    KMeansVocabulary,
     PointIndex,
     check_training_input,
     coarse_nodes,
@@ -60,13 +60,15 @@ log = logging.getLogger(__name__)
 ASSIGNMENTS = ("network", "centroid")
 
 
-class HGCNVocabulary(PCAVocabulary):
-    """Flat vocabulary of HGCN-learned words (kind ``hgcn``).
+class HGCNVocabulary(KMeansVocabulary):
+    """Flat vocabulary of HGCN-learned words (kind ``hgcn``): the centroid search of
+    :class:`~.flat.KMeansVocabulary` over the class means of the network's labels, and the
+    network.
 
     pca: descriptor projection. centroids: (W, d) class-mean centroids in PCA space.
     coarse_centroids: (C, d). word_coarse: (W,) coarse node of every word. ivf_centroids:
     (L, d) inverted-list centres of the centroid search (L = 0: exact). nprobe: lists probed
-    per query. network: the trained layers (None: a version-1 file, centroids only).
+    per query (centroids and prototypes). network: the trained layers (None: a version-1 file, centroids only).
     prototypes: (W, h) output-ball points of the words. proto_ivf_centroids: (L', h).
     rerank: prototypes re-ranked per descriptor. assignment: ``network`` or ``centroid``.
     """
@@ -78,9 +80,7 @@ class HGCNVocabulary(PCAVocabulary):
                  network: BallNetwork | None = None, prototypes: np.ndarray | None = None,
                  proto_ivf_centroids: np.ndarray | None = None, rerank: int = 4,
                  assignment: str = "network") -> None:
-        super().__init__(pca, coarse_centroids, word_coarse, idf, metadata)
-        self.centroids = np.ascontiguousarray(centroids, dtype=np.float32)
-        self._centroid_search = PointIndex(self.centroids, ivf_centroids, nprobe)
+        super().__init__(pca, centroids, coarse_centroids, word_coarse, ivf_centroids, nprobe, idf, metadata)
         self.network = network
         self.rerank = int(rerank)
         if network is not None:
@@ -103,17 +103,9 @@ class HGCNVocabulary(PCAVocabulary):
             raise ValueError("this vocabulary holds no network (a version-1 file): only 'centroid' assignment")
         self._assignment = value
 
-    @property
-    def ivf_centroids(self) -> np.ndarray:
-        return self._centroid_search.lists
-
-    @property
-    def nprobe(self) -> int:
-        return self._centroid_search.nprobe
-
-    @nprobe.setter
+    @KMeansVocabulary.nprobe.setter
     def nprobe(self, value: int) -> None:
-        self._centroid_search.nprobe = value
+        KMeansVocabulary.nprobe.fset(self, value)
         if self.network is not None:
             self._proto_search.nprobe = value
 
@@ -141,7 +133,7 @@ class HGCNVocabulary(PCAVocabulary):
 
     def words_of_points(self, x: np.ndarray) -> np.ndarray:
         if self._assignment == "centroid":
-            return self._centroid_search.search(x, 1)[:, 0].astype(np.int32)
+            return super().words_of_points(x)
         return self.nearest_prototype(self.embed(x))
 
     def graph_words(self, x: np.ndarray, adj) -> np.ndarray:
@@ -151,8 +143,7 @@ class HGCNVocabulary(PCAVocabulary):
         return self.nearest_prototype(self.network.embed_graph(x, adj), exact=True)
 
     def _state(self) -> dict[str, np.ndarray]:
-        out = {**self._pca_state(), "centroids": self.centroids, "ivf_centroids": self.ivf_centroids,
-               "nprobe": np.array(self.nprobe, np.int64)}
+        out = super()._state()
         if self.network is not None:
             out.update(self.network.arrays())
             out.update({"prototypes": self.prototypes, "proto_ivf_centroids": self._proto_search.lists,
@@ -161,9 +152,8 @@ class HGCNVocabulary(PCAVocabulary):
 
     @classmethod
     def _from_state(cls, arrays: dict[str, np.ndarray], metadata: VocabularyMetadata, path: Path) -> HGCNVocabulary:
-        pca = cls._check_pca_state(arrays, metadata, path, ("centroids", "ivf_centroids", "nprobe"))
-        n = len(arrays["idf"])
-        cls._check_points(arrays, path, "centroids", "ivf_centroids", pca.dim, n)
+        args = cls._centroid_args(arrays, metadata, path)
+        pca, n = args[0], len(arrays["idf"])
         kw: dict = {"assignment": "centroid"}
         if "prototypes" in arrays:
             try:
@@ -177,9 +167,8 @@ class HGCNVocabulary(PCAVocabulary):
             kw = {"network": net, "prototypes": arrays["prototypes"], "proto_ivf_centroids": arrays["proto_ivf_centroids"],
                   "rerank": int(arrays.get("rerank", 4)), "assignment": assignment}
         else:
-            log.info("%s: a vocabulary without the network (format version 1): words by nearest centroid", path)
-        return cls(pca, arrays["centroids"], arrays["coarse_centroids"], arrays["word_coarse"],
-                   arrays["ivf_centroids"], int(arrays["nprobe"]), arrays["idf"], metadata, **kw)
+            log.info("%s: a vocabulary without the network: words by nearest centroid", path)
+        return cls(*args, **kw)
 
 
 def seed_labels(x: np.ndarray, cfg: HgcnTrainConfig, track_ids: np.ndarray | None, rng: np.random.Generator):
