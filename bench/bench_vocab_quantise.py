@@ -5,12 +5,14 @@ Vocabularies timed:
 
 * ORB tree, k = 10, L = 4 (10^4 leaves at most), trained here on the same descriptors
   used to train the HGCN vocabularies (see --train);
-* HGCN vocabulary layout with 10 000 words: PCA 256 -> 20, IVF search over the word
-  centroids (4 sqrt(W) lists, nprobe lists probed) and the exact flat search for
-  comparison. Its centroids are k-means centres of the PCA-projected training
+* flat vocabulary layout with 10 000 words: PCA 256 -> 20, IVF search over the word
+  centroids (4 sqrt(W) lists, nprobe lists probed) and the exact flat search that the
+  flat vocabularies use up to 16384 words. Its centroids are k-means centres of the PCA-projected training
   descriptors: the search cost depends on the number and layout of the centroids, not on
   how they were learned, and a full 10k-word HGCN training takes minutes;
-* the shipped default vocabularies, when present.
+* the shipped default vocabularies, when present; the HGCN vocabulary with its network
+  (the layers, then the exact nearest prototype) and with the class-mean centroids, and
+  the network assignment's stages (PCA, layers, prototype search) timed apart.
 
 Printed per vocabulary: median CPU milliseconds (and wall milliseconds) over ``--runs``
 frames for ``transform_words`` (descriptors -> word ids) and ``transform`` (BoW +
@@ -36,7 +38,7 @@ from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.vocabulary import load_vocabulary
 from orbslam_hgcn.vocabulary.base import DEFAULT_FILES, VocabularyMetadata
 from orbslam_hgcn.vocabulary.graph import fit_pca
-from orbslam_hgcn.vocabulary.hgcn_vocab import HGCNVocabulary, kmeans, nearest
+from orbslam_hgcn.vocabulary.flat import KMeansVocabulary, kmeans, nearest
 from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
 
 REPO = Path(__file__).resolve().parents[1]
@@ -69,18 +71,18 @@ def timeit(fn, frames: list[np.ndarray], runs: int) -> tuple[float, float]:
     return 1e3 * float(np.median(cpu)), 1e3 * float(np.median(wall))
 
 
-def hgcn_layout(desc: np.ndarray, words: int) -> tuple[HGCNVocabulary, HGCNVocabulary]:
+def flat_layout(desc: np.ndarray, words: int) -> tuple[KMeansVocabulary, KMeansVocabulary]:
     """Two vocabularies with the same k-means centroids: IVF search and exact flat search."""
     pca = fit_pca(desc, 20)
     x = pca.transform(desc)
     cent = kmeans(x, words, 10, 0, points_per_centroid=20)
     coarse = kmeans(cent, 100, 20, 0)
     ivf = kmeans(cent, int(4 * np.sqrt(words)), 20, 1)
-    meta = VocabularyMetadata("hgcn", words, "binary", 32, trained_on="k-means centres (timing only)")
+    meta = VocabularyMetadata("kmeans", words, "binary", 32, trained_on="k-means centres (timing only)")
     wc = nearest(cent, coarse).astype(np.int32)
     idf = np.ones(words, np.float32)
-    return (HGCNVocabulary(pca, cent, coarse, wc, ivf, 4, idf, meta),
-            HGCNVocabulary(pca, cent, coarse, wc, np.zeros((0, 20), np.float32), 0, idf, meta))
+    return (KMeansVocabulary(pca, cent, coarse, wc, ivf, 4, idf, meta),
+            KMeansVocabulary(pca, cent, coarse, wc, np.zeros((0, 20), np.float32), 0, idf, meta))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -107,12 +109,12 @@ def main(argv: list[str] | None = None) -> int:
           f"timing vocabularies trained on {len(train)} descriptors of {src}; {args.threads} faiss thread(s); "
           f"{args.runs} runs each")
     tree = train_tree_vocabulary(train, np.arange(len(train)) // 1000, k=10, levels=4, progress=False)
-    ivf, flat = hgcn_layout(train, args.words)
+    ivf, flat = flat_layout(train, args.words)
     exact = np.concatenate([flat.transform_words(f) for f in frames])
     rows = [(f"orb tree k=10 L=4 ({tree.n_words} words)", tree, None)]
     for nprobe in (1, 2, 4, 8):
-        rows.append((f"hgcn layout, {args.words} words, IVF nprobe={nprobe}", ivf, nprobe))
-    rows.append((f"hgcn layout, {args.words} words, exact flat", flat, None))
+        rows.append((f"flat layout, {args.words} words, IVF nprobe={nprobe}", ivf, nprobe))
+    rows.append((f"flat layout, {args.words} words, exact flat", flat, None))
     for kind, path in DEFAULT_FILES.items():
         if path.is_file():
             v = load_vocabulary(path)
@@ -130,6 +132,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:46s} {w_cpu:8.2f} ({w_wall:6.2f}) {t_cpu:10.2f} ({t_wall:6.2f}) {agree:>8s}")
     p_cpu, p_wall = timeit(ivf.project, frames, args.runs)
     print(f"(PCA projection alone: {p_cpu:.2f} ms CPU ({p_wall:.2f} ms wall) per 1000 descriptors)")
+    if DEFAULT_FILES["hgcn"].is_file():
+        v = load_vocabulary(DEFAULT_FILES["hgcn"])
+        if getattr(v, "network", None) is not None:
+            xs = [v.project(f) for f in frames]
+            hs = [v.embed(x) for x in xs]
+            e_cpu, e_wall = timeit(lambda x: v.embed(x), xs, args.runs)
+            s_cpu, s_wall = timeit(lambda h: v.nearest_prototype(h), hs, args.runs)
+            v.assignment = "centroid"
+            c_cpu, c_wall = timeit(v.transform_words, frames, args.runs)
+            v.assignment = "network"
+            print(f"shipped hgcn, network assignment by stage: layers {e_cpu:.2f} ms CPU ({e_wall:.2f} wall), "
+                  f"prototype search {s_cpu:.2f} ({s_wall:.2f}); centroid assignment instead: "
+                  f"{c_cpu:.2f} ({c_wall:.2f})")
     return 0
 
 

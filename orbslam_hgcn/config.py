@@ -447,7 +447,7 @@ class HgcnTrainConfig:
     label_fraction: float = 0.1  # fraction of nodes given a seed label
     kmeans_iters: int = 20  # faiss k-means iterations of the label seeding
     kmeans_points_per_word: int = 64  # k-means trains on at most this many points per word
-    hidden_dim: int = 32  # width of both HGCN layers
+    hidden_dim: int = 20  # width of both HGCN layers (with 20 the run-time prototype search stays in faiss's fused kernel)
     activation: str = "tanh"  # tangent-space activation: relu, leaky_relu, elu, tanh
     residual: bool = True  # layers add their aggregate to an identity-initialised self path
     dropout: float = 0.0  # dropout on the layer weights (as HGCN's HypLinear)
@@ -462,8 +462,7 @@ class HgcnTrainConfig:
     weight_decay: float = 0.0  # Adam weight decay
     init_curvature: float = 1.0  # initial c of every ball (trainable, c = softplus(raw))
     n_coarse: int = 100  # coarse nodes (k-means of the word centres) for the FeatureVector
-    nprobe: int = 4  # inverted lists probed at run time (IVF over the words)
-    rerank: int = 4  # hgcn: nearest prototypes (Euclidean, in the ball) re-ranked hyperbolically
+    nprobe: int = 4  # inverted lists probed at run time (IVF over the words; above 16384 words only)
     assignment: str = "network"  # hgcn run time: "network" (the layers) or "centroid" (class means)
     seed: int = 0  # sampling, initialisation and k-means seeds
 
@@ -478,8 +477,8 @@ class HgcnTrainConfig:
             raise ConfigError(f"hgcn.holdout: must be in [0, 0.5), found {self.holdout!r}")
         if self.assignment not in ("network", "centroid"):
             raise ConfigError(f"hgcn.assignment: must be 'network' or 'centroid', found {self.assignment!r}")
-        if self.epochs < 0 or self.eval_every < 1 or self.candidate_classes < 1 or self.rerank < 1:
-            raise ConfigError("hgcn: epochs >= 0, eval_every >= 1, candidate_classes >= 1 and rerank >= 1 are required")
+        if self.epochs < 0 or self.eval_every < 1 or self.candidate_classes < 1:
+            raise ConfigError("hgcn: epochs >= 0, eval_every >= 1 and candidate_classes >= 1 are required")
 
 
 @dataclasses.dataclass(frozen=True)

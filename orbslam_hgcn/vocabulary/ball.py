@@ -5,7 +5,10 @@ al., NeurIPS 2018; the numerical guards of Chami et al.'s ``PoincareBall``) in f
 numpy, so that a vocabulary file can be used without torch. Only what the network needs
 for one descriptor seen as a graph of its own (:class:`BallNetwork`): the hyperbolic
 linear map, the exponential and logarithmic maps at the origin, Mobius addition and the
-projections.
+projections. Run time embeds descriptors as graphs of their own through one compiled
+kernel (:func:`_embed_rows`, the same operations row by row); numpy keeps the graph form
+(:meth:`BallNetwork.embed_graph`), which training's checks use. The nearest prototype is
+found exactly, by one inner-product search (:class:`PrototypeSearch`).
 """
 
 from __future__ import annotations
@@ -13,12 +16,17 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+import faiss
 import numpy as np
+
+from orbslam_hgcn.compiled import jit
+from orbslam_hgcn.vocabulary.graph import configure_faiss
 
 log = logging.getLogger(__name__)
 
 MIN_NORM = 1e-15
 BALL_EPS = 4e-3  # float32 projection margin, as hyperbolic.BALL_EPS
+ACTIVATION_CODES = {"relu": 0, "leaky_relu": 1, "elu": 2, "tanh": 3}  # of the compiled kernel
 ACTIVATIONS = {
     "relu": lambda v: np.maximum(v, 0.0),
     "leaky_relu": lambda v: np.where(v >= 0, v, 0.01 * v),
@@ -102,6 +110,27 @@ class BallNetwork:
         self.self_biases = [f32(b) for b in self.self_biases]
         self.curvatures = np.asarray(self.curvatures, np.float64)
         self._act = ACTIVATIONS[self.activation]
+        self._packed = self._pack()
+
+    def _pack(self) -> tuple:
+        """The kernel's arguments after x: the layers zero-padded into (n, out, in) arrays,
+        their widths, the biases as ball points ``proj(exp_0(b))``, and the constants."""
+        n = len(self.weights)
+        o = max(w.shape[0] for w in self.weights)
+        i = max(w.shape[1] for w in self.weights)
+        w3, sw3 = np.zeros((n, o, i)), np.zeros((n, o, i))
+        b2, sb2 = np.zeros((n, o)), np.zeros((n, o))
+        dims = np.zeros((n, 2), np.int64)
+        for k, w in enumerate(self.weights):
+            c = self.curvatures[k]
+            dims[k] = w.shape
+            w3[k, : w.shape[0], : w.shape[1]] = w
+            b2[k, : w.shape[0]] = proj(expmap0(self.biases[k][None, :].astype(np.float64), c), c)[0]
+            if self.residual:
+                sw3[k, : w.shape[0], : w.shape[1]] = self.self_weights[k]
+                sb2[k, : w.shape[0]] = proj(expmap0(self.self_biases[k][None, :].astype(np.float64), c), c)[0]
+        return (1.0 / float(self.input_scale), w3, b2, sw3, sb2, dims, self.curvatures.copy(),
+                ACTIVATION_CODES[self.activation], self.residual, float(artanh(np.float32(1 - BALL_EPS))))
 
     @property
     def residual(self) -> bool:
@@ -113,8 +142,13 @@ class BallNetwork:
 
     def embed_isolated(self, x: np.ndarray) -> np.ndarray:
         """(N, hidden) float32 output-ball points of PCA coordinates x (N, d), each descriptor
-        a graph of its own (its normalised self loop has weight 1)."""
-        return self.embed_graph(x, None)
+        a graph of its own (its normalised self loop has weight 1): :meth:`embed_graph`
+        without a graph, in the compiled kernel."""
+        x = np.ascontiguousarray(x, dtype=np.float32).reshape(-1, self.weights[0].shape[1])
+        out = np.empty((len(x), self.out_dim), np.float32)
+        if len(x):
+            _embed_rows(x, *self._packed, out)
+        return out
 
     def embed_graph(self, x: np.ndarray, adj) -> np.ndarray:
         """(N, hidden) float32 output-ball points of the nodes x (N, d) of a graph with the
@@ -171,3 +205,144 @@ def ball_weights(p: np.ndarray, c: float) -> np.ndarray:
     in the hyperbolic distance minimises ``|h - p|^2 / (1 - c |p|^2)`` (the distance
     ``arcosh(1 + 2c|h-p|^2 / ((1-c|h|^2)(1-c|p|^2))) / sqrt(c)`` grows with it)."""
     return (1.0 / np.maximum(1.0 - c * np.einsum("kd,kd->k", p, p), MIN_NORM)).astype(np.float32)
+
+
+class PrototypeSearch:
+    """Exact hyperbolic nearest prototype by one faiss flat L2 search.
+
+    For a query h, the nearest of the ball points p (curvature c) minimises
+    ``w_p |h - p|^2`` with ``w_p = 1 / (1 - c |p|^2)`` (:func:`ball_weights`): it has the
+    largest inner product of ``q = [h, |h|^2, 1]`` with ``u_p = [2 w_p p, -w_p,
+    -w_p |p|^2]``. Scaled to unit length, ``u_p / M`` completed by ``sqrt(1 - |u_p / M|^2)``
+    (M the largest ``|u_p|``) and ``q / |q|`` completed by 0, the largest inner product is
+    the nearest point in L2, which faiss finds in one fused pass for up to 32 dimensions
+    (hidden width + 3, padded with zeros to a multiple of 8). On a frame of descriptors this
+    exhaustive search through BLAS costs less than an inverted file that finds the nearest
+    prototype as often.
+    """
+
+    def __init__(self, prototypes: np.ndarray, c: float) -> None:
+        configure_faiss()
+        p = np.asarray(prototypes, np.float64)
+        w = (1.0 / np.maximum(1.0 - c * np.einsum("kd,kd->k", p, p), MIN_NORM))[:, None]
+        u = np.hstack([2 * w * p, -w, -w * np.einsum("kd,kd->k", p, p)[:, None]])
+        u /= np.sqrt(np.einsum("kd,kd->k", u, u).max())
+        self.dim = -(-(u.shape[1] + 1) // 8) * 8
+        db = np.zeros((len(u), self.dim), np.float32)
+        db[:, : u.shape[1]] = u
+        db[:, u.shape[1]] = np.sqrt(np.maximum(1.0 - np.einsum("kd,kd->k", u, u), 0.0))
+        self.index = faiss.IndexFlatL2(self.dim)
+        self.index.add(db)
+
+    def search(self, h: np.ndarray) -> np.ndarray:
+        """(N,) int32 nearest prototype of ball points h (N, hidden)."""
+        h = np.asarray(h, np.float32)
+        q = np.zeros((len(h), self.dim), np.float32)
+        q[:, : h.shape[1]] = h
+        q[:, h.shape[1]] = np.einsum("nd,nd->n", h, h)
+        q[:, h.shape[1] + 1] = 1.0
+        q /= np.sqrt(np.einsum("nd,nd->n", q, q))[:, None]
+        return self.index.search(q, 1)[1][:, 0].astype(np.int32)
+
+
+@jit
+def _norm1(v, n):
+    s = 0.0
+    for t in range(n):
+        s += v[t] * v[t]
+    return max(np.sqrt(s), MIN_NORM)
+
+
+@jit
+def _artanh1(x):
+    x = min(max(x, -1.0 + 1e-7), 1.0 - 1e-7)
+    return 0.5 * (np.log1p(x) - np.log1p(-x))
+
+
+@jit
+def _clip_tangent1(v, n, c, r_max_unit):
+    f = min(r_max_unit / np.sqrt(c) / _norm1(v, n), 1.0)
+    for t in range(n):
+        v[t] *= f
+
+
+@jit
+def _hyp_linear_log1(v, n_in, w, bias_pt, n_out, c, out):
+    """out[:n_out] = log_0(proj(proj(exp_0(W v)) (+) bias_pt)) on the ball c."""
+    sc = np.sqrt(c)
+    maxnorm = (1 - BALL_EPS) / sc
+    for r in range(n_out):
+        s = 0.0
+        for t in range(n_in):
+            s += w[r, t] * v[t]
+        out[r] = s
+    n = _norm1(out, n_out)
+    f = np.tanh(sc * n) / (sc * n)  # exp_0
+    if f * n > maxnorm:
+        f = maxnorm / n
+    x2, y2, xy = 0.0, 0.0, 0.0
+    for r in range(n_out):
+        out[r] *= f
+        x2 += out[r] * out[r]
+        y2 += bias_pt[r] * bias_pt[r]
+        xy += out[r] * bias_pt[r]
+    a = 1 + 2 * c * xy + c * y2
+    b = 1 - c * x2
+    den = max(1 + 2 * c * xy + c * c * x2 * y2, MIN_NORM)
+    for r in range(n_out):
+        out[r] = (a * out[r] + b * bias_pt[r]) / den
+    n = _norm1(out, n_out)
+    if n > maxnorm:
+        for r in range(n_out):
+            out[r] *= maxnorm / n
+        n = maxnorm
+    f = _artanh1(sc * n) / (sc * n)  # log_0
+    for r in range(n_out):
+        out[r] *= f
+
+
+@jit
+def _embed_rows(x, inv_scale, w3, b2, sw3, sb2, dims, curv, act, residual, r_max_unit, out):
+    """Rows of x (N, d) through the layers as lone nodes (see :meth:`BallNetwork._pack`)."""
+    n_layers = w3.shape[0]
+    width = max(w3.shape[1], w3.shape[2])
+    v = np.empty(width)
+    s = np.empty(width)
+    r = np.empty(width)
+    for i in range(x.shape[0]):
+        n_in = dims[0, 1]
+        for t in range(n_in):
+            v[t] = x[i, t] * inv_scale
+        _clip_tangent1(v, n_in, curv[0], r_max_unit)
+        for k in range(n_layers):
+            ci, co = curv[k], curv[k + 1]
+            n_out, n_in = dims[k, 0], dims[k, 1]
+            _hyp_linear_log1(v, n_in, w3[k], b2[k], n_out, ci, s)
+            _clip_tangent1(s, n_out, ci, r_max_unit)
+            for t in range(n_out):
+                e = s[t]
+                if act == 0:
+                    e = max(e, 0.0)
+                elif act == 1:
+                    e = e if e >= 0 else 0.01 * e
+                elif act == 2:
+                    e = e if e > 0 else np.expm1(e)
+                else:
+                    e = np.tanh(e)
+                s[t] = e
+            if residual:
+                _hyp_linear_log1(v, n_in, sw3[k], sb2[k], n_out, ci, r)
+                for t in range(n_out):
+                    s[t] += r[t]
+            for t in range(n_out):
+                v[t] = s[t]
+            _clip_tangent1(v, n_out, co, r_max_unit)
+        n_out = dims[n_layers - 1, 0]
+        c = curv[n_layers]
+        sc = np.sqrt(c)
+        n = _norm1(v, n_out)
+        f = np.tanh(sc * n) / (sc * n)
+        if f * n > (1 - BALL_EPS) / sc:
+            f = (1 - BALL_EPS) / sc / n
+        for t in range(n_out):
+            out[i, t] = v[t] * f

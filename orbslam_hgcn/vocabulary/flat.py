@@ -2,9 +2,9 @@
 
 What the HGCN vocabulary and its ablation share: descriptors are projected to ``d``
 dimensions by PCA (ORB: the 256 bits unpacked, through a byte lookup table), words are
-points found by faiss (exactly, IndexFlatL2, for small vocabularies; through an inverted
-file over the words, IndexIVFFlat with ``4 sqrt(W)`` lists and ``nprobe`` probed, for large
-ones), and the FeatureVector uses coarse nodes: the words' centres clustered by k-means
+points found by faiss (exactly, IndexFlatL2, up to :data:`FLAT_MAX_WORDS` words; through an
+inverted file over the words, IndexIVFFlat with ``4 sqrt(W)`` lists and ``nprobe`` probed,
+above), and the FeatureVector uses coarse nodes: the words' centres clustered by k-means
 into ``n_coarse`` nodes (``levels_up >= 1``; ``levels_up = 0`` indexes the words).
 
 The k-means vocabulary (kind ``kmeans``) is the HGCN vocabulary without the graph and the
@@ -35,7 +35,11 @@ from orbslam_hgcn.vocabulary.graph import PCA, configure_faiss, fit_pca
 
 log = logging.getLogger(__name__)
 
-FLAT_MAX_WORDS = 2048  # exact nearest-word search up to this many words, IVF above
+# Exact nearest-word search up to this many words, IVF above. A frame's descriptors go to
+# faiss in one batch, which its exhaustive search handles through BLAS: 8000 words in 20-D,
+# 1000 KITTI descriptors, one thread, took 2.0 ms exactly against 1.5 ms with 4 of 357
+# lists probed (73% nearest) and 5.0 ms with 16 (95.5%) (faiss 1.15).
+FLAT_MAX_WORDS = 16384
 
 
 def kmeans(x: np.ndarray, k: int, niter: int, seed: int, points_per_centroid: int = 256) -> np.ndarray:

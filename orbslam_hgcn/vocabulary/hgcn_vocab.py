@@ -13,11 +13,9 @@ Training (after "Semi-supervised Vector-Quantization in Visual SLAM using HGCN")
    of the class's seed centre, a point of the Poincare ball.
 
 Run time (``assignment = "network"``): a descriptor is PCA-projected (a byte lookup table),
-passed through the trained layers as a graph of its own (:class:`~.ball.BallNetwork`, in
-numpy), and its word is the nearest prototype in the hyperbolic distance: faiss finds the
-``rerank`` nearest prototypes in the ball's Euclidean coordinates (exactly, or through an
-inverted file over the prototypes with ``nprobe`` lists probed), and those are re-ranked
-exactly. Training measures how often this gives the word the network gave the training
+passed through the trained layers as a graph of its own (:class:`~.ball.BallNetwork`, a
+compiled kernel), and its word is the nearest prototype in the hyperbolic distance, found
+exactly among all prototypes (:class:`~.ball.PrototypeSearch`). Training measures how often this gives the word the network gave the training
 descriptor inside its graph (``runtime_word_agreement``). ``assignment = "centroid"``
 instead takes the nearest class-mean centroid (in PCA space) of the network's labels, the
 decoder of version-1 files, which load that way.
@@ -27,8 +25,7 @@ coarse nodes (k-means of the class-mean centroids), see :mod:`.flat`.
 
 Saved arrays: those of :class:`~.flat.KMeansVocabulary` (``centroids`` are the class means
 of the network's labels) and, for the network, ``prototypes`` (W, h) points of the output
-ball, ``proto_ivf_centroids`` (L, h), ``rerank`` and ``assignment`` (scalars) and the
-``net_*`` arrays of :class:`~.ball.BallNetwork`.
+ball, ``assignment`` (a scalar) and the ``net_*`` arrays of :class:`~.ball.BallNetwork`.
 """
 
 from __future__ import annotations
@@ -41,12 +38,11 @@ from pathlib import Path
 import numpy as np
 
 from orbslam_hgcn.config import HgcnTrainConfig
-from orbslam_hgcn.vocabulary.ball import BallNetwork, ball_weights
+from orbslam_hgcn.vocabulary.ball import BallNetwork, PrototypeSearch
 from orbslam_hgcn.vocabulary.base import VocabularyMetadata, now_iso, require
 from orbslam_hgcn.vocabulary.bow import idf_from_documents
 from orbslam_hgcn.vocabulary.flat import (
     KMeansVocabulary,
-    PointIndex,
     check_training_input,
     coarse_nodes,
     ivf_lists,
@@ -69,8 +65,8 @@ class HGCNVocabulary(KMeansVocabulary):
     coarse_centroids: (C, d). word_coarse: (W,) coarse node of every word. ivf_centroids:
     (L, d) inverted-list centres of the centroid search (L = 0: exact). nprobe: lists probed
     per query (centroids and prototypes). network: the trained layers (None: a version-1 file, centroids only).
-    prototypes: (W, h) output-ball points of the words. proto_ivf_centroids: (L', h).
-    rerank: prototypes re-ranked per descriptor. assignment: ``network`` or ``centroid``.
+    prototypes: (W, h) output-ball points of the words. assignment: ``network`` or
+    ``centroid``.
     """
 
     kind = "hgcn"
@@ -78,17 +74,13 @@ class HGCNVocabulary(KMeansVocabulary):
     def __init__(self, pca: PCA, centroids: np.ndarray, coarse_centroids: np.ndarray, word_coarse: np.ndarray,
                  ivf_centroids: np.ndarray, nprobe: int, idf: np.ndarray, metadata: VocabularyMetadata, *,
                  network: BallNetwork | None = None, prototypes: np.ndarray | None = None,
-                 proto_ivf_centroids: np.ndarray | None = None, rerank: int = 4,
                  assignment: str = "network") -> None:
         super().__init__(pca, centroids, coarse_centroids, word_coarse, ivf_centroids, nprobe, idf, metadata)
         self.network = network
-        self.rerank = int(rerank)
         if network is not None:
             self.prototypes = np.ascontiguousarray(prototypes, dtype=np.float32)
-            lists = np.zeros((0, self.prototypes.shape[1]), np.float32) if proto_ivf_centroids is None \
-                else proto_ivf_centroids
-            self._proto_search = PointIndex(self.prototypes, lists, nprobe)
-            self._proto_w = ball_weights(self.prototypes, float(network.curvatures[-1]))
+            self._proto_search = PrototypeSearch(self.prototypes, float(network.curvatures[-1]))
+            network.embed_isolated(np.zeros((1, network.weights[0].shape[1]), np.float32))  # compile or load the kernel
         self.assignment = assignment
 
     @property
@@ -103,33 +95,13 @@ class HGCNVocabulary(KMeansVocabulary):
             raise ValueError("this vocabulary holds no network (a version-1 file): only 'centroid' assignment")
         self._assignment = value
 
-    @KMeansVocabulary.nprobe.setter
-    def nprobe(self, value: int) -> None:
-        KMeansVocabulary.nprobe.fset(self, value)
-        if self.network is not None:
-            self._proto_search.nprobe = value
-
     def embed(self, x: np.ndarray) -> np.ndarray:
         """(N, h) output-ball points of PCA coordinates x (N, d), each a graph of its own."""
         return self.network.embed_isolated(x)
 
-    def nearest_prototype(self, h: np.ndarray, exact: bool = False) -> np.ndarray:
-        """(N,) int32 hyperbolically nearest prototype of ball points h (N, h): among the
-        ``rerank`` Euclidean-nearest found by the search, or among all (``exact``)."""
-        if exact:
-            p2 = np.einsum("kd,kd->k", self.prototypes, self.prototypes)
-            out = np.empty(len(h), np.int32)
-            for s in range(0, len(h), 4096):
-                hh = h[s : s + 4096]
-                q = (p2[None, :] - 2 * hh @ self.prototypes.T + np.einsum("nd,nd->n", hh, hh)[:, None]) * self._proto_w
-                out[s : s + 4096] = q.argmin(1)
-            return out
-        cand = self._proto_search.search(h, self.rerank)
-        safe = np.maximum(cand, 0)
-        diff = self.prototypes[safe] - h[:, None, :]
-        score = np.einsum("nkd,nkd->nk", diff, diff) * self._proto_w[safe]
-        score[cand < 0] = np.inf
-        return cand[np.arange(len(h)), score.argmin(1)].astype(np.int32)
+    def nearest_prototype(self, h: np.ndarray) -> np.ndarray:
+        """(N,) int32 hyperbolically nearest prototype of ball points h (N, h)."""
+        return self._proto_search.search(h)
 
     def words_of_points(self, x: np.ndarray) -> np.ndarray:
         if self._assignment == "centroid":
@@ -140,14 +112,13 @@ class HGCNVocabulary(KMeansVocabulary):
         """(N,) int32 the network's words of nodes x (N, d) inside the graph with normalised
         propagation matrix adj (the labels training gives; for held-out descriptors, build
         the graph over them and the training descriptors)."""
-        return self.nearest_prototype(self.network.embed_graph(x, adj), exact=True)
+        return self.nearest_prototype(self.network.embed_graph(x, adj))
 
     def _state(self) -> dict[str, np.ndarray]:
         out = super()._state()
         if self.network is not None:
             out.update(self.network.arrays())
-            out.update({"prototypes": self.prototypes, "proto_ivf_centroids": self._proto_search.lists,
-                        "rerank": np.array(self.rerank, np.int64), "assignment": np.array(self._assignment)})
+            out.update({"prototypes": self.prototypes, "assignment": np.array(self._assignment)})
         return out
 
     @classmethod
@@ -161,11 +132,14 @@ class HGCNVocabulary(KMeansVocabulary):
             except (KeyError, ValueError) as exc:
                 require(False, path, f"bad network arrays ({exc})")
             require(net.weights[0].shape[1] == pca.dim, path, "network input size differs from the PCA size")
-            cls._check_points(arrays, path, "prototypes", "proto_ivf_centroids", net.out_dim, n)
+            protos = arrays["prototypes"]
+            require(protos.shape == (n, net.out_dim), path, "'prototypes' does not match the word count or size")
+            require(bool(np.all(np.isfinite(protos))), path, "non-finite values in 'prototypes'")
+            require(bool(np.all(net.curvatures[-1] * np.einsum("kd,kd->k", protos, protos) < 1.0)), path,
+                    "'prototypes' outside the ball")
             assignment = str(arrays.get("assignment", "network"))
             require(assignment in ASSIGNMENTS, path, f"unknown assignment {assignment!r}")
-            kw = {"network": net, "prototypes": arrays["prototypes"], "proto_ivf_centroids": arrays["proto_ivf_centroids"],
-                  "rerank": int(arrays.get("rerank", 4)), "assignment": assignment}
+            kw = {"network": net, "prototypes": protos, "assignment": assignment}
         else:
             log.info("%s: a vocabulary without the network: words by nearest centroid", path)
         return cls(*args, **kw)
@@ -269,7 +243,6 @@ def train_hgcn_vocabulary(
     )
     vocab = HGCNVocabulary(pca, centroids, coarse, word_coarse, ivf_lists(centroids, cfg.seed + 1), cfg.nprobe,
                            np.ones(cfg.n_words, np.float32), meta, network=network, prototypes=prototypes,
-                           proto_ivf_centroids=ivf_lists(prototypes, cfg.seed + 2), rerank=cfg.rerank,
                            assignment="network")
     params = meta.params
     params["ivf_lists"] = len(vocab.ivf_centroids)
