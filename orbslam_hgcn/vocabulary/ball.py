@@ -6,9 +6,10 @@ numpy, so that a vocabulary file can be used without torch. Only what the networ
 for one descriptor seen as a graph of its own (:class:`BallNetwork`): the hyperbolic
 linear map, the exponential and logarithmic maps at the origin, Mobius addition and the
 projections. Run time embeds descriptors as graphs of their own through one compiled
-kernel (:func:`_embed_rows`, the same operations row by row); numpy keeps the graph form
-(:meth:`BallNetwork.embed_graph`), which training's checks use. The nearest prototype is
-found exactly, by one inner-product search (:class:`PrototypeSearch`).
+kernel per layer (:func:`_layer_rows`: the same operations row by row, after BLAS has done
+the matrix products); numpy keeps the graph form (:meth:`BallNetwork.embed_graph`), which
+training's checks use. The nearest prototype is found exactly, by one faiss search over
+lifted prototypes (:class:`PrototypeSearch`).
 """
 
 from __future__ import annotations
@@ -110,27 +111,23 @@ class BallNetwork:
         self.self_biases = [f32(b) for b in self.self_biases]
         self.curvatures = np.asarray(self.curvatures, np.float64)
         self._act = ACTIVATIONS[self.activation]
-        self._packed = self._pack()
+        self._layers = self._pack()
 
-    def _pack(self) -> tuple:
-        """The kernel's arguments after x: the layers zero-padded into (n, out, in) arrays,
-        their widths, the biases as ball points ``proj(exp_0(b))``, and the constants."""
-        n = len(self.weights)
-        o = max(w.shape[0] for w in self.weights)
-        i = max(w.shape[1] for w in self.weights)
-        w3, sw3 = np.zeros((n, o, i)), np.zeros((n, o, i))
-        b2, sb2 = np.zeros((n, o)), np.zeros((n, o))
-        dims = np.zeros((n, 2), np.int64)
+    def _pack(self) -> list[tuple]:
+        """Per layer, what the lone-node pass needs: the transposed weights of both paths
+        (float32, for BLAS), their biases as ball points ``proj(exp_0(b))`` and the input
+        and output curvatures."""
+        layers = []
         for k, w in enumerate(self.weights):
-            c = self.curvatures[k]
-            dims[k] = w.shape
-            w3[k, : w.shape[0], : w.shape[1]] = w
-            b2[k, : w.shape[0]] = proj(expmap0(self.biases[k][None, :].astype(np.float64), c), c)[0]
+            c = float(self.curvatures[k])
+            bias = proj(expmap0(self.biases[k][None, :].astype(np.float64), c), c)[0]
             if self.residual:
-                sw3[k, : w.shape[0], : w.shape[1]] = self.self_weights[k]
-                sb2[k, : w.shape[0]] = proj(expmap0(self.self_biases[k][None, :].astype(np.float64), c), c)[0]
-        return (1.0 / float(self.input_scale), w3, b2, sw3, sb2, dims, self.curvatures.copy(),
-                ACTIVATION_CODES[self.activation], self.residual, float(artanh(np.float32(1 - BALL_EPS))))
+                sw = np.ascontiguousarray(self.self_weights[k].T)
+                sbias = proj(expmap0(self.self_biases[k][None, :].astype(np.float64), c), c)[0]
+            else:
+                sw, sbias = np.zeros((w.shape[1], 0), np.float32), np.zeros(0)
+            layers.append((np.ascontiguousarray(w.T), bias, sw, sbias, c, float(self.curvatures[k + 1])))
+        return layers
 
     @property
     def residual(self) -> bool:
@@ -145,10 +142,16 @@ class BallNetwork:
         a graph of its own (its normalised self loop has weight 1): :meth:`embed_graph`
         without a graph, in the compiled kernel."""
         x = np.ascontiguousarray(x, dtype=np.float32).reshape(-1, self.weights[0].shape[1])
-        out = np.empty((len(x), self.out_dim), np.float32)
-        if len(x):
-            _embed_rows(x, *self._packed, out)
-        return out
+        v = clip_tangent(x / np.float32(self.input_scale), float(self.curvatures[0]))
+        act = ACTIVATION_CODES[self.activation]
+        r_unit = float(artanh(np.float32(1 - BALL_EPS)))
+        for k, (wt, bias, swt, sbias, ci, co) in enumerate(self._layers):
+            out = np.empty((len(v), wt.shape[1]), np.float32)
+            if len(v):
+                _layer_rows(v @ wt, v @ swt, bias, sbias, ci, co, act, self.residual, r_unit,
+                            k == len(self._layers) - 1, out)
+            v = out
+        return v
 
     def embed_graph(self, x: np.ndarray, adj) -> np.ndarray:
         """(N, hidden) float32 output-ball points of the nodes x (N, d) of a graph with the
@@ -267,30 +270,28 @@ def _clip_tangent1(v, n, c, r_max_unit):
 
 
 @jit
-def _hyp_linear_log1(v, n_in, w, bias_pt, n_out, c, out):
-    """out[:n_out] = log_0(proj(proj(exp_0(W v)) (+) bias_pt)) on the ball c."""
+def _ball_linear_log(a, bias_pt, c, out):
+    """out = log_0(proj(proj(exp_0(a)) (+) bias_pt)) on the ball c, for one row a = W v
+    (the tangent result of the hyperbolic linear map)."""
+    n_out = len(a)
     sc = np.sqrt(c)
     maxnorm = (1 - BALL_EPS) / sc
-    for r in range(n_out):
-        s = 0.0
-        for t in range(n_in):
-            s += w[r, t] * v[t]
-        out[r] = s
-    n = _norm1(out, n_out)
+    n = _norm1(a, n_out)
     f = np.tanh(sc * n) / (sc * n)  # exp_0
     if f * n > maxnorm:
         f = maxnorm / n
     x2, y2, xy = 0.0, 0.0, 0.0
     for r in range(n_out):
-        out[r] *= f
-        x2 += out[r] * out[r]
+        m = a[r] * f
+        out[r] = m
+        x2 += m * m
         y2 += bias_pt[r] * bias_pt[r]
-        xy += out[r] * bias_pt[r]
-    a = 1 + 2 * c * xy + c * y2
-    b = 1 - c * x2
+        xy += m * bias_pt[r]
+    p = 1 + 2 * c * xy + c * y2
+    q = 1 - c * x2
     den = max(1 + 2 * c * xy + c * c * x2 * y2, MIN_NORM)
     for r in range(n_out):
-        out[r] = (a * out[r] + b * bias_pt[r]) / den
+        out[r] = (p * out[r] + q * bias_pt[r]) / den
     n = _norm1(out, n_out)
     if n > maxnorm:
         for r in range(n_out):
@@ -302,47 +303,45 @@ def _hyp_linear_log1(v, n_in, w, bias_pt, n_out, c, out):
 
 
 @jit
-def _embed_rows(x, inv_scale, w3, b2, sw3, sb2, dims, curv, act, residual, r_max_unit, out):
-    """Rows of x (N, d) through the layers as lone nodes (see :meth:`BallNetwork._pack`)."""
-    n_layers = w3.shape[0]
-    width = max(w3.shape[1], w3.shape[2])
-    v = np.empty(width)
-    s = np.empty(width)
-    r = np.empty(width)
-    for i in range(x.shape[0]):
-        n_in = dims[0, 1]
-        for t in range(n_in):
-            v[t] = x[i, t] * inv_scale
-        _clip_tangent1(v, n_in, curv[0], r_max_unit)
-        for k in range(n_layers):
-            ci, co = curv[k], curv[k + 1]
-            n_out, n_in = dims[k, 0], dims[k, 1]
-            _hyp_linear_log1(v, n_in, w3[k], b2[k], n_out, ci, s)
-            _clip_tangent1(s, n_out, ci, r_max_unit)
-            for t in range(n_out):
-                e = s[t]
-                if act == 0:
-                    e = max(e, 0.0)
-                elif act == 1:
-                    e = e if e >= 0 else 0.01 * e
-                elif act == 2:
-                    e = e if e > 0 else np.expm1(e)
-                else:
-                    e = np.tanh(e)
-                s[t] = e
-            if residual:
-                _hyp_linear_log1(v, n_in, sw3[k], sb2[k], n_out, ci, r)
-                for t in range(n_out):
-                    s[t] += r[t]
-            for t in range(n_out):
-                v[t] = s[t]
-            _clip_tangent1(v, n_out, co, r_max_unit)
-        n_out = dims[n_layers - 1, 0]
-        c = curv[n_layers]
-        sc = np.sqrt(c)
-        n = _norm1(v, n_out)
-        f = np.tanh(sc * n) / (sc * n)
-        if f * n > (1 - BALL_EPS) / sc:
-            f = (1 - BALL_EPS) / sc / n
+def _layer_rows(a, b, bias_pt, sbias_pt, ci, co, act, residual, r_max_unit, last, out):
+    """One layer for lone nodes, row by row: a (N, d_out) = V W^T and b = V W_self^T are the
+    matrix products of both paths (from BLAS); out (N, d_out) receives the next layer's
+    tangent input, or, for the last layer (``last``), the output-ball points."""
+    n_out = a.shape[1]
+    s = np.empty(n_out)
+    r = np.empty(n_out)
+    row = np.empty(n_out)
+    for i in range(a.shape[0]):
         for t in range(n_out):
-            out[i, t] = v[t] * f
+            row[t] = a[i, t]
+        _ball_linear_log(row, bias_pt, ci, s)
+        _clip_tangent1(s, n_out, ci, r_max_unit)
+        for t in range(n_out):
+            e = s[t]
+            if act == 0:
+                e = max(e, 0.0)
+            elif act == 1:
+                e = e if e >= 0 else 0.01 * e
+            elif act == 2:
+                e = e if e > 0 else np.expm1(e)
+            else:
+                e = np.tanh(e)
+            s[t] = e
+        if residual:
+            for t in range(n_out):
+                row[t] = b[i, t]
+            _ball_linear_log(row, sbias_pt, ci, r)
+            for t in range(n_out):
+                s[t] += r[t]
+        _clip_tangent1(s, n_out, co, r_max_unit)
+        if last:
+            sc = np.sqrt(co)
+            n = _norm1(s, n_out)
+            f = np.tanh(sc * n) / (sc * n)
+            if f * n > (1 - BALL_EPS) / sc:
+                f = (1 - BALL_EPS) / sc / n
+            for t in range(n_out):
+                out[i, t] = s[t] * f
+        else:
+            for t in range(n_out):
+                out[i, t] = s[t]
