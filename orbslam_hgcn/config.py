@@ -463,7 +463,6 @@ class HgcnTrainConfig:
     init_curvature: float = 1.0  # initial c of every ball (trainable, c = softplus(raw))
     n_coarse: int = 100  # coarse nodes (k-means of the word centres) for the FeatureVector
     nprobe: int = 4  # inverted lists probed at run time (IVF over the words; above 16384 words only)
-    assignment: str = "network"  # hgcn run time: "network" (the layers) or "centroid" (class means)
     seed: int = 0  # sampling, initialisation and k-means seeds
 
     def __post_init__(self) -> None:
@@ -475,8 +474,6 @@ class HgcnTrainConfig:
             raise ConfigError(f"hgcn.activation: unknown activation {self.activation!r}")
         if not 0.0 <= self.holdout < 0.5:
             raise ConfigError(f"hgcn.holdout: must be in [0, 0.5), found {self.holdout!r}")
-        if self.assignment not in ("network", "centroid"):
-            raise ConfigError(f"hgcn.assignment: must be 'network' or 'centroid', found {self.assignment!r}")
         if self.epochs < 0 or self.eval_every < 1 or self.candidate_classes < 1:
             raise ConfigError("hgcn: epochs >= 0, eval_every >= 1 and candidate_classes >= 1 are required")
 
