@@ -116,21 +116,22 @@ def ceiling(words: int, n_features: int, seed: int) -> None:
     rows.append(("MLP map to the track mean (fitted on half)", None, acc(moved, held)))
     for alpha in (0.25, 0.5, 1.0):
         rows.append((f"x + {alpha} mean of its 9-NN", acc((x + alpha * x[nb].mean(1)) / (1 + alpha)), None))
+
+    def with_neighbours(weight: np.ndarray) -> np.ndarray:
+        """Each descriptor averaged with its 9 neighbours, weighted by ``weight`` (N, 9) (itself: 1)."""
+        return (x + (x[nb] * weight[..., None]).sum(1)) / (1 + weight.sum(1))[:, None]
+
     d2 = ((x[nb] - x[:, None]) ** 2).sum(-1)
     for tau in (0.1, 0.25, 0.5):
-        s = np.exp(-d2 / (tau * np.median(d2)))
         rows.append((f"9-NN weighted by exp(-d^2 / {tau} median)",
-                     acc((x + (x[nb] * s[..., None]).sum(1)) / (1 + s.sum(1))[:, None]), None))
+                     acc(with_neighbours(np.exp(-d2 / (tau * np.median(d2))))), None))
     bits = np.unpackbits(d, axis=1)
     ham = np.stack([(bits[nb[:, j]] != bits).sum(1) for j in range(nb.shape[1])], axis=1)
     for thr in (20, 30, 40):
         s = (ham < thr).astype(np.float32)
         prec = 100 * float(mates[member][s[member] > 0].mean())
-        rows.append((f"9-NN within Hamming {thr} ({prec:.0f}% of them track mates)",
-                     acc((x + (x[nb] * s[..., None]).sum(1)) / (1 + s.sum(1))[:, None]), None))
-    s = mates.astype(np.float32)
-    rows.append(("oracle: 9-NN of its own track", acc((x + (x[nb] * s[..., None]).sum(1)) / (1 + s.sum(1))[:, None]),
-                 None))
+        rows.append((f"9-NN within Hamming {thr} ({prec:.0f}% of them track mates)", acc(with_neighbours(s)), None))
+    rows.append(("oracle: 9-NN of its own track", acc(with_neighbours(mates.astype(np.float32))), None))
     print(f"\nshare of track members given their track-mean label (%), {time.perf_counter() - t0:.0f} s")
     print(f"{'rule':58s} {'all members':>12s} {'held-out half':>14s}")
     for name, a_all, a_held in rows:

@@ -11,7 +11,8 @@ per-call overhead on small arrays outweighs the arithmetic: the pose-only optimi
 (:mod:`orbslam_hgcn.match.matching`) and local BA (:mod:`orbslam_hgcn.backend.schur_ba`)
 are compiled too, as are ORB extraction's FAST detection, quadtree and descriptor loops
 (:mod:`orbslam_hgcn.features.fast`, :mod:`~orbslam_hgcn.features.distribute`,
-:mod:`~orbslam_hgcn.features.rbrief`).
+:mod:`~orbslam_hgcn.features.rbrief`), and the HGCN vocabulary's run-time layers
+(:mod:`orbslam_hgcn.vocabulary.ball`, warmed when a vocabulary with a network is built).
 
 The first run after an install compiles them (7-10 s for the tracking kernels and about
 10 s for FAST and the quadtree on a 2-core machine); later runs load them from the cache

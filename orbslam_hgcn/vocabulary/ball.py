@@ -45,6 +45,9 @@ def artanh(x: np.ndarray) -> np.ndarray:
     return 0.5 * (np.log1p(x) - np.log1p(-x))
 
 
+R_MAX_UNIT = float(artanh(np.float32(1 - BALL_EPS)))  # tangent radius of the projection ball at c = 1
+
+
 def proj(x: np.ndarray, c: float) -> np.ndarray:
     maxnorm = (1 - BALL_EPS) / np.sqrt(c)
     n = _norm(x)
@@ -111,6 +114,7 @@ class BallNetwork:
         self.self_biases = [f32(b) for b in self.self_biases]
         self.curvatures = np.asarray(self.curvatures, np.float64)
         self._act = ACTIVATIONS[self.activation]
+        self._act_code = ACTIVATION_CODES[self.activation]
         self._layers = self._pack()
 
     def _pack(self) -> list[tuple]:
@@ -143,12 +147,10 @@ class BallNetwork:
         without a graph, in the compiled kernel."""
         x = np.ascontiguousarray(x, dtype=np.float32).reshape(-1, self.weights[0].shape[1])
         v = clip_tangent(x / np.float32(self.input_scale), float(self.curvatures[0]))
-        act = ACTIVATION_CODES[self.activation]
-        r_unit = float(artanh(np.float32(1 - BALL_EPS)))
         for k, (wt, bias, swt, sbias, ci, co) in enumerate(self._layers):
             out = np.empty((len(v), wt.shape[1]), np.float32)
             if len(v):
-                _layer_rows(v @ wt, v @ swt, bias, sbias, ci, co, act, self.residual, r_unit,
+                _layer_rows(v @ wt, v @ swt, bias, sbias, ci, co, self._act_code, self.residual, R_MAX_UNIT,
                             k == len(self._layers) - 1, out)
             v = out
         return v
@@ -207,7 +209,8 @@ def ball_weights(p: np.ndarray, c: float) -> np.ndarray:
     """(K,) ``1 / (1 - c |p|^2)`` of ball points p (K, d): the nearest point of a set to h
     in the hyperbolic distance minimises ``|h - p|^2 / (1 - c |p|^2)`` (the distance
     ``arcosh(1 + 2c|h-p|^2 / ((1-c|h|^2)(1-c|p|^2))) / sqrt(c)`` grows with it)."""
-    return (1.0 / np.maximum(1.0 - c * np.einsum("kd,kd->k", p, p), MIN_NORM)).astype(np.float32)
+    p = np.asarray(p, np.float64)
+    return 1.0 / np.maximum(1.0 - c * np.einsum("kd,kd->k", p, p), MIN_NORM)
 
 
 class PrototypeSearch:
@@ -227,7 +230,7 @@ class PrototypeSearch:
     def __init__(self, prototypes: np.ndarray, c: float) -> None:
         configure_faiss()
         p = np.asarray(prototypes, np.float64)
-        w = (1.0 / np.maximum(1.0 - c * np.einsum("kd,kd->k", p, p), MIN_NORM))[:, None]
+        w = ball_weights(p, c)[:, None]
         u = np.hstack([2 * w * p, -w, -w * np.einsum("kd,kd->k", p, p)[:, None]])
         u /= np.sqrt(np.einsum("kd,kd->k", u, u).max())
         self.dim = -(-(u.shape[1] + 1) // 8) * 8
@@ -270,16 +273,22 @@ def _clip_tangent1(v, n, c, r_max_unit):
 
 
 @jit
+def _exp0_scale(n, c):
+    """The factor f with ``proj(exp_0(u)) = f u`` on the ball c, for |u| = n."""
+    sc = np.sqrt(c)
+    f = np.tanh(sc * n) / (sc * n)
+    maxnorm = (1 - BALL_EPS) / sc
+    return maxnorm / n if f * n > maxnorm else f
+
+
+@jit
 def _ball_linear_log(a, bias_pt, c, out):
     """out = log_0(proj(proj(exp_0(a)) (+) bias_pt)) on the ball c, for one row a = W v
     (the tangent result of the hyperbolic linear map)."""
     n_out = len(a)
     sc = np.sqrt(c)
     maxnorm = (1 - BALL_EPS) / sc
-    n = _norm1(a, n_out)
-    f = np.tanh(sc * n) / (sc * n)  # exp_0
-    if f * n > maxnorm:
-        f = maxnorm / n
+    f = _exp0_scale(_norm1(a, n_out), c)
     x2, y2, xy = 0.0, 0.0, 0.0
     for r in range(n_out):
         m = a[r] * f
@@ -335,11 +344,7 @@ def _layer_rows(a, b, bias_pt, sbias_pt, ci, co, act, residual, r_max_unit, last
                 s[t] += r[t]
         _clip_tangent1(s, n_out, co, r_max_unit)
         if last:
-            sc = np.sqrt(co)
-            n = _norm1(s, n_out)
-            f = np.tanh(sc * n) / (sc * n)
-            if f * n > (1 - BALL_EPS) / sc:
-                f = (1 - BALL_EPS) / sc / n
+            f = _exp0_scale(_norm1(s, n_out), co)
             for t in range(n_out):
                 out[i, t] = s[t] * f
         else:

@@ -163,9 +163,15 @@ class PCAVocabulary(Vocabulary):
         return PCA(mean, comp, binary=binary)
 
     @staticmethod
-    def _check_points(arrays: dict[str, np.ndarray], path: Path, points: str, lists: str, dim: int, n: int) -> None:
-        p, lst = arrays[points], arrays[lists]
+    def _check_points(arrays: dict[str, np.ndarray], path: Path, points: str, dim: int, n: int,
+                      lists: str | None = None) -> None:
+        """Check the (n, dim) array ``points`` and, if named, its (L, dim) search lists."""
+        p = arrays[points]
         require(p.ndim == 2 and p.shape == (n, dim), path, f"'{points}' does not match the word count or size")
+        if lists is None:
+            require(bool(np.all(np.isfinite(p))), path, f"non-finite values in '{points}'")
+            return
+        lst = arrays[lists]
         require(lst.ndim == 2 and lst.shape[1] == dim, path, f"bad '{lists}'")
         require(bool(np.all(np.isfinite(p))) and bool(np.all(np.isfinite(lst))), path,
                 f"non-finite values in '{points}' or '{lists}'")
@@ -210,7 +216,7 @@ class KMeansVocabulary(PCAVocabulary):
     def _centroid_args(cls, arrays: dict[str, np.ndarray], metadata: VocabularyMetadata, path: Path) -> tuple:
         """The constructor's positional arguments, from checked arrays."""
         pca = cls._check_pca_state(arrays, metadata, path, ("centroids", "ivf_centroids", "nprobe"))
-        cls._check_points(arrays, path, "centroids", "ivf_centroids", pca.dim, len(arrays["idf"]))
+        cls._check_points(arrays, path, "centroids", pca.dim, len(arrays["idf"]), lists="ivf_centroids")
         return (pca, arrays["centroids"], arrays["coarse_centroids"], arrays["word_coarse"],
                 arrays["ivf_centroids"], int(arrays["nprobe"]), arrays["idf"], metadata)
 

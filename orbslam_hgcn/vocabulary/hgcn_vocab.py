@@ -135,9 +135,8 @@ class HGCNVocabulary(KMeansVocabulary):
             except (KeyError, ValueError) as exc:
                 require(False, path, f"bad network arrays ({exc})")
             require(net.weights[0].shape[1] == pca.dim, path, "network input size differs from the PCA size")
+            cls._check_points(arrays, path, "prototypes", net.out_dim, n)
             protos = arrays["prototypes"]
-            require(protos.shape == (n, net.out_dim), path, "'prototypes' does not match the word count or size")
-            require(bool(np.all(np.isfinite(protos))), path, "non-finite values in 'prototypes'")
             require(bool(np.all(net.curvatures[-1] * np.einsum("kd,kd->k", protos, protos) < 1.0)), path,
                     "'prototypes' outside the ball")
             assignment = str(arrays.get("assignment", "network"))
