@@ -731,24 +731,31 @@ class ThreadsConfig:
     # wait). At the camera's rate mapping rarely falls that far behind; a run faster than
     # the camera would otherwise outrun it until tracking is lost.
     keyframe_wait_s: float = 0.5
-    # Paced threaded runs (speed > 0) with prefetch: a frame is dropped unprocessed when the
-    # camera would already have delivered the frames of the next frame_buffer_s seconds by
-    # the time the system is ready for it, as a camera driver whose queue holds that much
-    # drops the frames a busy reader misses (counted as "dropped" in stats.json): the system
-    # never falls further behind than that, and catches up after a stall without skipping
-    # the frames in between. 0: every frame is processed, however late. With a queue of one
-    # frame (ORB-SLAM's ROS node subscribes with a queue of 1), the fr3 replay with blur
-    # (30 Hz) dropped 2.6% of its frames on an idle 2-core machine, on stalls of a frame or
-    # two, and a KITTI run (10 Hz) whose tracker waited 0.8 s for local mapping lost its map
-    # on the 5-frame gap it then had to bridge.
+    # Paced threaded runs (speed > 0) with prefetch: False (the default, for recorded files:
+    # image folders, datasets, videos) processes every frame; a run that the machine cannot
+    # keep at the camera's rate falls behind the clock instead, as ORB-SLAM3's example
+    # programs do, and stats.json says by how much (real_time). True (a live source,
+    # ``orbslam-hgcn run --drop-late``) drops frames as a camera driver whose queue holds
+    # frame_buffer_s seconds of frames does: see frame_buffer_s.
+    drop_late: bool = False
+    # With drop_late: a frame is dropped unprocessed when the camera would already have
+    # delivered the frames of the next frame_buffer_s seconds by the time the system is
+    # ready for it (counted as "dropped" in stats.json): the system never falls further
+    # behind than that, and catches up after a stall without skipping the frames in
+    # between. 0: no frame is dropped. With a queue of one frame (ORB-SLAM's ROS node
+    # subscribes with a queue of 1), the fr3 replay with blur (30 Hz) dropped 2.6% of its
+    # frames on an idle 2-core machine, on stalls of a frame or two, and a KITTI run (10 Hz)
+    # whose tracker waited 0.8 s for local mapping lost its map on the 5-frame gap it then
+    # had to bridge.
     frame_buffer_s: float = 0.5
     # Paced threaded runs: after handing a keyframe to local mapping, the tracker waits (at
-    # most this many seconds, and never past half the frame queue after the next frame's
-    # arrival, so that no frame is dropped for it) until mapping has finished it, so that
-    # the next frames see its points and pose as a sequential run would; the frames that
-    # arrive meanwhile wait in the frame queue. When every keyframe is mapped within the
-    # bound, the run gives exactly the sequential run's result. 0: never waits (as
-    # ORB-SLAM's threads).
+    # most this many seconds) until mapping has finished it, so that the next frames are
+    # tracked against its points and pose as a sequential run would track them; the frames
+    # that arrive meanwhile wait and the run falls behind the clock (it catches up at the
+    # next frames, which are due already). When every keyframe is mapped within the bound,
+    # the run gives exactly the sequential run's result. With drop_late the wait also ends
+    # half the frame queue after the next frame's arrival, so that no frame is dropped for
+    # it. 0: never waits (as ORB-SLAM's threads).
     sync_mapping_s: float = 0.5
 
     def __post_init__(self) -> None:

@@ -62,13 +62,6 @@ def sequential_runs(seq):
     return runs
 
 
-def _no_drops(c: Configs | None = None) -> Configs:
-    """Configs whose paced threaded runs process every frame, however late (the default
-    drops frames when the system falls behind its camera, which a loaded test machine may)."""
-    c = c or Configs()
-    return dataclasses.replace(c, threads=dataclasses.replace(c.threads, frame_buffer_s=0.0))
-
-
 def _threads(**kw) -> Configs:
     c = Configs()
     return dataclasses.replace(c, threads=dataclasses.replace(c.threads, **kw))
@@ -77,16 +70,16 @@ def _threads(**kw) -> Configs:
 @pytest.fixture(scope="module")
 def threaded_run(seq):
     # As ORB-SLAM's threads: tracking goes on while local mapping works (no sync).
-    system = System(seq.camera, _threads(frame_buffer_s=0.0, sync_mapping_s=0.0), sequential=False)
+    system = System(seq.camera, _threads(sync_mapping_s=0.0), sequential=False)
     summary = system.run(seq, N_FRAMES, progress=False)
     return system, summary
 
 
 def test_threaded_run_with_mapping_sync_equals_the_sequential_run(seq, sequential_runs):
-    """With threads.sync_mapping_s (default 0.5 s, bounded by half the frame queue; 10 s
-    and a 20 s queue here so that a loaded test machine keeps up) a paced threaded run
-    gives the sequential run's result, bit for bit."""
-    system = System(seq.camera, _threads(frame_buffer_s=20.0, sync_mapping_s=10.0), sequential=False)
+    """With threads.sync_mapping_s (default 0.5 s; 10 s here so that a loaded test machine
+    keeps up) a paced threaded run gives the sequential run's result, bit for bit: the
+    frames that arrive while mapping finishes a keyframe wait, none is dropped."""
+    system = System(seq.camera, _threads(sync_mapping_s=10.0), sequential=False)
     system.run(seq, N_FRAMES, progress=False)
     ref = sequential_runs[0]
     for get in (System.keyframe_trajectory, System.camera_trajectory):
@@ -219,6 +212,22 @@ class _Retimed(Sequence):
         return self._t
 
 
+def _slow_frames(system: System, frames: tuple[int, ...], seconds: float) -> list[int]:
+    """Make the tracker of ``system`` take ``seconds`` more on ``frames``; returns the list
+    of the frames it tracks, in order, filled as the run goes."""
+    processed: list[int] = []
+    track = system.tracker.track
+
+    def slow_track(frame):
+        processed.append(frame.id)
+        if frame.id in frames:
+            time.sleep(seconds)
+        return track(frame)
+
+    system.tracker.track = slow_track
+    return processed
+
+
 @pytest.mark.parametrize("speed", [1.0, 2.0])
 def test_threaded_run_takes_frames_no_faster_than_their_timestamps(seq, speed):
     # A camera at 20 Hz, with the stream stopping for a minute before the last frame: each
@@ -226,8 +235,7 @@ def test_threaded_run_takes_frames_no_faster_than_their_timestamps(seq, speed):
     # the gap is waited for at most a second, the clock starting again from there.
     t = np.arange(12) * 0.05
     t[-1] = t[-2] + 60.0
-    c = _no_drops()
-    c = dataclasses.replace(c, threads=dataclasses.replace(c.threads, speed=speed))
+    c = _threads(speed=speed)
     system = System(seq.camera, c, sequential=False)
     t0 = time.perf_counter()
     summary = system.run(_Retimed(seq, t), progress=False)
@@ -241,25 +249,17 @@ def test_threaded_run_takes_frames_no_faster_than_their_timestamps(seq, speed):
     _assert_nothing_left()
 
 
-def test_a_paced_run_behind_its_camera_drops_frames_and_counts_them(seq):
-    """A camera at 4 Hz, a queue of 0.5 s (the default threads.frame_buffer_s) and a
-    tracker that takes 0.9 s more on frames 5 and 12: a frame is dropped unprocessed when
-    the frames of the next 0.5 s have arrived by the time the system is ready for it, as a
-    camera driver with that queue drops them, and counted; every other frame is
-    processed, in order."""
+def test_a_live_source_behind_its_camera_drops_late_frames_and_counts_them(seq):
+    """threads.drop_late (run --drop-late), a camera at 4 Hz, a queue of 0.5 s (the default
+    threads.frame_buffer_s) and a tracker that takes 0.9 s more on frames 5 and 12: a frame
+    is dropped unprocessed when the frames of the next 0.5 s have arrived by the time the
+    system is ready for it, as a camera driver with that queue drops them, and counted;
+    every other frame is processed, in order. Without drop_late (the default) every frame
+    is processed and the run records how late it fell."""
     t = np.arange(20) * 0.25
-    system = System(seq.camera, sequential=False)
+    system = System(seq.camera, _threads(drop_late=True), sequential=False)
     assert system.configs.threads.frame_buffer_s == 0.5
-    processed = []
-    track = system.tracker.track
-
-    def slow_track(frame):
-        processed.append(frame.id)
-        if frame.id in (5, 12):
-            time.sleep(0.9)
-        return track(frame)
-
-    system.tracker.track = slow_track
+    processed = _slow_frames(system, (5, 12), 0.9)
     summary = system.run(_Retimed(seq, t), progress=False)
     stats = system.stats()
     dropped = [r.frame_id for r in system.tracker.records if r.dropped]
@@ -270,9 +270,16 @@ def test_a_paced_run_behind_its_camera_drops_frames_and_counts_them(seq):
     # Only frames delivered while a slow frame was being tracked are dropped.
     assert 5 in processed and 12 in processed
     assert set(dropped) <= {6, 7, 13, 14}, dropped
-    no_drop = System(seq.camera, _no_drops(), sequential=False)
+    assert stats["real_time"]["drop_late"] and stats["real_time"]["dropped"] == len(dropped)
+    no_drop = System(seq.camera, sequential=False)
+    processed = _slow_frames(no_drop, (5, 12), 0.9)
     no_drop.run(_Retimed(seq, t), 20, progress=False)
-    assert no_drop.stats()["frames"]["dropped"] == 0
+    rt = no_drop.stats()["real_time"]
+    assert no_drop.stats()["frames"]["dropped"] == 0 and processed == list(range(20))
+    assert not rt["drop_late"] and rt["lag_ms"]["count"] == 20
+    assert rt["lag_ms"]["max"] >= 900.0  # frame 5's pose came after its 0.9 s stall
+    # Behind the clock by then; caught up by the last frame, which is handed out on time.
+    assert 0.5 < rt["real_time_factor"] <= 1.0
     _assert_nothing_left()
 
 
