@@ -755,8 +755,12 @@ class ThreadsConfig:
     # next frames, which are due already). When every keyframe is mapped within the bound,
     # the run gives exactly the sequential run's result. With drop_late the wait also ends
     # half the frame queue after the next frame's arrival, so that no frame is dropped for
-    # it. 0: never waits (as ORB-SLAM's threads).
-    sync_mapping_s: float = 0.5
+    # it. 0: never waits (as ORB-SLAM's threads). Frames tracked ahead of a busy mapping
+    # are tracked against a stale local map, and their poses drift from the keyframes':
+    # with 1.5 s of mapping stalled on a synthetic replay, 20-30 mm against 1 mm for the
+    # keyframes. The default bound (5 s, was 0.5 s) only guards against a stalled stage: on
+    # a loaded 2-core machine KITTI keyframes took up to 3 s to map.
+    sync_mapping_s: float = 5.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed) and self.speed >= 0):
