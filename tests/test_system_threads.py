@@ -137,9 +137,9 @@ def test_camera_poses_of_a_slow_mapping_run_are_as_good_as_its_keyframes(seq):
     (threads.sync_mapping_s), so that no frame is tracked against a stale local map, and
     the written poses stay as good as the keyframes': camera ATE within 1.1 times the
     keyframes' (or 0.5 mm more), no frame off by more than 3 times the keyframes' largest
-    error, and within 6 mm of the ground truth (the sequential run: 1.9 mm). Tracking on
-    without the wait (sync_mapping_s 0, as ORB-SLAM's threads), the frames of the stall
-    were 20-30 mm off, against keyframes within 15 mm."""
+    error, and camera ATE under 4 mm (2.5 mm here). Tracking on without the wait
+    (sync_mapping_s 0, as ORB-SLAM's threads), the frames of the stall are tracked against
+    a stale local map: camera ATE 5.1 mm, max 10.7 mm, against keyframes' 4.3 and 5.5 mm."""
     system, _ = _slow_mapping_run(seq)
     assert system.timings["mapping_sync"] and max(system.timings["mapping_sync"]) > 1000.0  # the stall
     cam, kf = _camera_pose_errors(seq, system)
@@ -147,7 +147,7 @@ def test_camera_poses_of_a_slow_mapping_run_are_as_good_as_its_keyframes(seq):
     assert len(kf) >= 4
     assert rms(cam) <= 1.1 * rms(kf) + 0.0005, (rms(cam), rms(kf))
     assert cam.max() <= 3.0 * kf.max(), (cam.max(), kf.max())
-    assert rms(cam) < 0.006
+    assert rms(cam) < 0.004, rms(cam)
     _assert_nothing_left()
 
 
