@@ -100,6 +100,24 @@ def _hog(niceness: int = 0) -> None:
         x += 1
 
 
+def start_load(load: str, hogs: int = 0) -> list:
+    """Start the busy processes of ``load`` (LOADS) and ``hogs`` more at normal priority;
+    stop them with :func:`stop_load`."""
+    n_load, niceness = LOADS[load]
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_hog, daemon=True) for _ in range(hogs)]
+    procs += [ctx.Process(target=_hog, args=(niceness,), daemon=True) for _ in range(n_load)]
+    for p in procs:
+        p.start()
+    return procs
+
+
+def stop_load(procs: list) -> None:
+    for p in procs:
+        p.terminate()
+        p.join()
+
+
 def run_once(path: Path, kind: str, mode: str, extra: list[str], hogs: int, load: str = "none") -> dict:
     """One ``orbslam-hgcn run`` in a child process, ``hogs`` normal-priority busy processes
     and the processes of ``load`` (LOADS) beside it; the figures from its stats.json."""
@@ -107,20 +125,13 @@ def run_once(path: Path, kind: str, mode: str, extra: list[str], hogs: int, load
     cmd = [*_cli(), "run", str(path), "--dataset", kind, "--out", str(out / "run"), "--no-progress", *extra]
     if mode == "sequential":
         cmd.append("--sequential")
-    n_load, niceness = LOADS[load]
-    ctx = mp.get_context("spawn")
-    procs = [ctx.Process(target=_hog, daemon=True) for _ in range(hogs)]
-    procs += [ctx.Process(target=_hog, args=(niceness,), daemon=True) for _ in range(n_load)]
-    for p in procs:
-        p.start()
+    procs = start_load(load, hogs)
     try:
         t0 = time.perf_counter()
         res = subprocess.run(cmd, capture_output=True, text=True)
         wall = time.perf_counter() - t0
     finally:
-        for p in procs:
-            p.terminate()
-            p.join()
+        stop_load(procs)
     stats_path = out / "run" / "stats.json"
     if res.returncode != 0 or not stats_path.is_file():
         shutil.rmtree(out, ignore_errors=True)

@@ -748,25 +748,36 @@ class ThreadsConfig:
     # whose tracker waited 0.8 s for local mapping lost its map on the 5-frame gap it then
     # had to bridge.
     frame_buffer_s: float = 0.5
-    # Paced threaded runs: after handing a keyframe to local mapping, the tracker waits (at
+    # Threaded runs: after handing a keyframe to local mapping, the tracker waits (at
     # most this many seconds) until mapping has finished it, so that the next frames are
     # tracked against its points and pose as a sequential run would track them; the frames
     # that arrive meanwhile wait and the run falls behind the clock (it catches up at the
     # next frames, which are due already). When every keyframe is mapped within the bound,
     # the run gives exactly the sequential run's result. With drop_late the wait also ends
     # half the frame queue after the next frame's arrival, so that no frame is dropped for
-    # it. 0: never waits (as ORB-SLAM's threads). Frames tracked ahead of a busy mapping
+    # it. Unpaced runs (speed 0) wait too: ahead of mapping, a KITTI run under load lost its
+    # track on frame 24. 0: never waits (as ORB-SLAM's threads). Frames tracked ahead of a busy mapping
     # are tracked against a stale local map, and their poses drift from the keyframes':
     # with 1.5 s of mapping stalled on a synthetic replay, 20-30 mm against 1 mm for the
     # keyframes. The default bound (5 s, was 0.5 s) only guards against a stalled stage: on
     # a loaded 2-core machine KITTI keyframes took up to 3 s to map.
     sync_mapping_s: float = 5.0
+    # Threads that OpenCV's and faiss's (OpenMP) pools may start in the process that tracks
+    # and maps (System.run sets them; the extraction process uses one OpenCV thread). Every
+    # stage already has a core-sized share of a 2-core machine: tracking, local mapping, the
+    # extraction and BA processes; a library pool of one thread per core inside the mapper
+    # (faiss's word search) or the tracker only adds switches and waits. 0: the libraries'
+    # own defaults (one per core).
+    library_threads: int = 1
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed) and self.speed >= 0):
             raise ConfigError(f"threads.speed: must be a finite number >= 0 (0: no pacing), found {self.speed!r}")
         if not (math.isfinite(self.keyframe_wait_s) and self.keyframe_wait_s >= 0):
             raise ConfigError(f"threads.keyframe_wait_s: must be a finite number >= 0, found {self.keyframe_wait_s!r}")
+        if not (isinstance(self.library_threads, int) and self.library_threads >= 0):
+            raise ConfigError(f"threads.library_threads: must be an integer >= 0 (0: the libraries' defaults), "
+                              f"found {self.library_threads!r}")
         if not (math.isfinite(self.sync_mapping_s) and self.sync_mapping_s >= 0):
             raise ConfigError(f"threads.sync_mapping_s: must be a finite number >= 0 (0: off), found {self.sync_mapping_s!r}")
         if not (math.isfinite(self.frame_buffer_s) and self.frame_buffer_s >= 0):

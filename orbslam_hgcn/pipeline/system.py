@@ -32,6 +32,7 @@ import dataclasses
 import logging
 import math
 import queue
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -91,6 +92,21 @@ INTERRUPTED = "interrupted (Ctrl-C)"  # RunSummary.stop_reason
 TERMINATED = "terminated (SIGTERM)"
 MAX_LOST_EXTRACTION = 3  # extraction processes a run may lose before it stops
 MAX_BAD_FRAMES_LISTED = 100  # unreadable frames listed one by one in the stats
+
+
+def limit_library_threads(n: int) -> dict[str, int]:
+    """Let OpenCV and faiss (when loaded: the vocabularies' word search) use ``n`` threads
+    in this process (``threads.library_threads``; 0: leave their defaults); returns the
+    counts now in force, by library."""
+    if n > 0:
+        cv2.setNumThreads(n)
+    counts = {"opencv": int(cv2.getNumThreads())}
+    faiss = sys.modules.get("faiss")
+    if faiss is not None:
+        if n > 0:
+            faiss.omp_set_num_threads(n)
+        counts["faiss"] = int(faiss.omp_get_max_threads())
+    return counts
 
 
 def warm_up_kernels() -> float:
@@ -380,6 +396,7 @@ class System:
         # Frames skipped because their image could not be read: {frame, t, error}.
         self.bad_frames: list[dict[str, Any]] = []
         self.n_extraction_lost = 0  # extraction processes that died during the run
+        self.library_threads: dict[str, int] = {}  # set by run(): threads of OpenCV and faiss
         # Paced runs: per frame processed, how late (ms) its pose came out after the camera
         # would have delivered it; the camera time and wall time the run spanned (s).
         self.lags_ms: list[float] = []
@@ -626,6 +643,7 @@ class System:
         # Threaded runs take frames no faster than the camera would deliver them; sequential
         # runs give the same result at any pace.
         pacer = _Pacer(0.0 if self.sequential else threads.speed, threading.Event())
+        self.library_threads = limit_library_threads(threads.library_threads)
         prefetch = None
         try:
             stages = self.stages  # threaded: worker threads and the local BA process start now
@@ -676,14 +694,11 @@ class System:
                 if rec is None:
                     continue
                 t_frame = time.perf_counter()
-                # A keyframe's mapping may hold the tracker of a paced run (threads.sync_mapping_s);
-                # with drop_late, not so long that the next frame would wait more than half the
-                # frame queue. A recorded sequence loses no frame to the wait: it runs late.
+                # A keyframe's mapping may hold the tracker (threads.sync_mapping_s); with
+                # drop_late, not so long that the next frame would wait more than half the frame
+                # queue. A recorded sequence loses no frame to the wait: it runs late.
                 due = pacer.due(float(stamps[i])) if i < n else None
-                if due is None:
-                    self._resume_by = None
-                else:
-                    self._resume_by = due + 0.5 * threads.frame_buffer_s if threads.drop_late else math.inf
+                self._resume_by = math.inf if due is None or not threads.drop_late else due + 0.5 * threads.frame_buffer_s
                 result = self.process(rec.image, rec.timestamp, rec.index, features)
                 self._clock_frame(pacer, rec.timestamp, features)
                 if self.observers:
@@ -815,6 +830,7 @@ class System:
                 "sequential": self.sequential,
                 "process_solver": self.configs.threads.process_solver,
                 "speed": 0.0 if self.sequential else self.configs.threads.speed,
+                "library_threads": self.library_threads,
             },
             "events": self.events,
             "real_time": self.real_time(),
