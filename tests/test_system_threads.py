@@ -90,21 +90,29 @@ def test_threaded_run_with_mapping_sync_equals_the_sequential_run(seq, sequentia
     _assert_nothing_left()
 
 
-def _slow_mapping_run(seq, **threads) -> tuple[System, list[int]]:
-    """A paced threaded run of the replay whose local mapping takes 1.5 s more on its
-    fourth keyframe and 0.1 s on the others, with keyframes whenever the rules' timing
-    allows (the slow replay rarely loses 10% of the reference keyframe's points), so that
-    a busy mapping holds back due keyframes; also the frames on which a keyframe was made
-    after waiting for mapping (threads.keyframe_wait_s)."""
+def _slow_mapping_run(seq, until_starved: bool = False, **threads) -> tuple[System, list[int]]:
+    """A paced threaded run of the replay whose local mapping takes 0.1 s more per keyframe
+    and stalls on its fourth keyframe, 1.5 s or (``until_starved``) until the tracker finds
+    a keyframe due and mapping busy (at most 20 s), with keyframes whenever the rules'
+    timing allows (the slow replay rarely loses 10% of the reference keyframe's points);
+    also the frames on which a keyframe was made after waiting for mapping
+    (threads.keyframe_wait_s)."""
     c = _threads(**threads)
     c = dataclasses.replace(c, tracking=dataclasses.replace(c.tracking, ref_ratio=2.0))
     system = System(seq.camera, c, sequential=False)
-    process, keyframe_now = system.mapper.process, system.tracker.keyframe_now
+    process, keyframe_now, starved = system.mapper.process, system.tracker.keyframe_now, system._map_starved_frame
     made_after_wait: list[int] = []
+    release = threading.Event()
 
     def slow(kf):
-        time.sleep(1.5 if kf.id == 3 else 0.1)
+        if kf.id == 3 and until_starved:
+            release.wait(20.0)
+        time.sleep(1.5 if kf.id == 3 and not until_starved else 0.1)
         return process(kf)
+
+    def starving(*args):
+        release.set()
+        return starved(*args)
 
     def recorded(frame, n_in):
         kf = keyframe_now(frame, n_in)
@@ -112,7 +120,7 @@ def _slow_mapping_run(seq, **threads) -> tuple[System, list[int]]:
             made_after_wait.append(kf.frame_id)
         return kf
 
-    system.mapper.process, system.tracker.keyframe_now = slow, recorded
+    system.mapper.process, system.tracker.keyframe_now, system._map_starved_frame = slow, recorded, starving
     system.run(seq, progress=False)
     s = system.stats()
     assert s["frames"]["lost"] == 0 and s["map_resets"] == 0 and s["frames"]["tracked"] >= 75
@@ -157,7 +165,7 @@ def test_a_frame_made_a_keyframe_after_waiting_for_mapping_has_its_keyframes_pos
     its pose was written: its written pose is then its keyframe's, moved by local BA like
     it (it was written relative to the old reference keyframe, 25-40 cm off its own
     keyframe's pose on loaded KITTI runs)."""
-    system, made_after_wait = _slow_mapping_run(seq, sync_mapping_s=0.0, keyframe_wait_s=3.0)
+    system, made_after_wait = _slow_mapping_run(seq, until_starved=True, sync_mapping_s=0.0, keyframe_wait_s=3.0)
     assert made_after_wait  # the path under test was taken
     kfs, cam = system.keyframe_trajectory(), system.camera_trajectory()
     at = {t: i for i, t in enumerate(cam.timestamps)}
