@@ -763,12 +763,13 @@ class ThreadsConfig:
     # a loaded 2-core machine KITTI keyframes took up to 3 s to map.
     sync_mapping_s: float = 5.0
     # Threads that OpenCV's and faiss's (OpenMP) pools may start in the process that tracks
-    # and maps (System.run sets them; the extraction process uses one OpenCV thread). Every
-    # stage already has a core-sized share of a 2-core machine: tracking, local mapping, the
-    # extraction and BA processes; a library pool of one thread per core inside the mapper
-    # (faiss's word search) or the tracker only adds switches and waits. 0: the libraries'
-    # own defaults (one per core).
-    library_threads: int = 1
+    # and maps (System.run sets them, stats.json records them; the extraction process uses
+    # one OpenCV thread). 0: the libraries' own defaults (one per core). One thread was
+    # expected to help on 2 cores shared by tracking, mapping, extraction and BA, but unpaced
+    # KITTI runs on a shared machine (load average 11-17, alternated) gave 3.4 and 2.0
+    # frames/s with 1 against 3.1 and 4.1 with the defaults (HGCN insert step median 287 and
+    # 458 ms against 214 and 211 ms), so the defaults stay until a quieter measurement.
+    library_threads: int = 0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed) and self.speed >= 0):
