@@ -52,6 +52,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench_real import start_load, stop_load  # noqa: E402 - a sibling script
+
 PEER_REQUIREMENT = "pyorbslam3==0.1.1"
 # Debian/Ubuntu packages of the shared libraries pyorbslam3 0.1.1's wheel needs from the
 # host (found with ldd on its extension module); the rest it carries inside the wheel.
@@ -542,6 +544,8 @@ def main() -> int:
                    help="ORB-SLAM3's ORBextractor.nFeatures (default: 2000 for KITTI, else 1000)")
     p.add_argument("--speed", type=float, default=1.0,
                    help="both systems take frames at this many times the camera's rate (0: unpaced)")
+    p.add_argument("--load", default="none", choices=["none", "nice19", "hog"],
+                   help="CPU load beside every run of both systems, as bench_real.py --load (default none)")
     p.add_argument("--out", type=Path, default=None, help="folder for the runs' outputs (default: a new temp folder)")
     p.add_argument("--peer-check", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--peer-child", action="store_true", help=argparse.SUPPRESS)
@@ -596,7 +600,7 @@ def main() -> int:
           f"vocabulary {vocab}{f', BoW matching at tree level {args.peer_bow_level}' if args.peer_bow_level else ''}")
     pace = "as fast as they are processed" if args.speed == 0 else f"at {args.speed:g}x the camera's rate"
     print(f"frames {pace}; {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the start; "
-          f"outputs in {out}")
+          f"load beside each run: {args.load}; outputs in {out}")
     print("tracked: ours, frames with a pose in the final map; ORB-SLAM3, frames in state OK. lost: ours LOST, "
           "ORB-SLAM3 RECENTLY_LOST or LOST. maps: initialisations (a new map after each reset or loss). "
           "KFs: keyframes of the final map. KF ATE: RMSE after Sim(3) alignment. frames/s: frames / wall s; "
@@ -609,10 +613,14 @@ def main() -> int:
     for i in range(args.runs):
         order = ("ours", "peer") if i % 2 == 0 else ("peer", "ours")
         for who in order:
-            if who == "ours":
-                row = run_ours(args, kind, out / f"run{i + 1}_ours", gt)
-            else:
-                row = run_peer(args, sequence, n, vocab, settings, out / f"run{i + 1}_orbslam3", gt)
+            procs = start_load(args.load)
+            try:
+                if who == "ours":
+                    row = run_ours(args, kind, out / f"run{i + 1}_ours", gt)
+                else:
+                    row = run_peer(args, sequence, n, vocab, settings, out / f"run{i + 1}_orbslam3", gt)
+            finally:
+                stop_load(procs)
             rows[row["system"]].append(row)
             print(format_row(str(i + 1), row), flush=True)
     for system, rs in rows.items():

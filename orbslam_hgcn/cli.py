@@ -367,6 +367,10 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--localization", action="store_true",
                    help="with --load-map: track against the map without changing it (no new keyframes)")
     _add_sequential_argument(p)
+    p.add_argument("--drop-late", action="store_true",
+                   help="paced threaded runs: drop a frame that waits longer than threads.frame_buffer_s (0.5 s), "
+                   "as a live camera's driver does, and count it; by default every frame is processed and a slow "
+                   "run falls behind the clock (stats.json: real_time)")
     p.set_defaults(func=_run_run)
 
 
@@ -387,6 +391,7 @@ def _run_run(args: argparse.Namespace) -> int:
             loop_closing=not args.no_loop, progress=not args.no_progress, vocab=args.vocab, rerun=args.rerun,
             load_map=args.load_map, save_map=args.save_map, localization=args.localization,
             sequential=args.sequential, speed=args.speed, on_bad_frame=args.on_bad_frame,
+            drop_late=args.drop_late,
         )
     finally:
         signal.signal(signal.SIGTERM, previous)

@@ -731,31 +731,54 @@ class ThreadsConfig:
     # wait). At the camera's rate mapping rarely falls that far behind; a run faster than
     # the camera would otherwise outrun it until tracking is lost.
     keyframe_wait_s: float = 0.5
-    # Paced threaded runs (speed > 0) with prefetch: a frame is dropped unprocessed when the
-    # camera would already have delivered the frames of the next frame_buffer_s seconds by
-    # the time the system is ready for it, as a camera driver whose queue holds that much
-    # drops the frames a busy reader misses (counted as "dropped" in stats.json): the system
-    # never falls further behind than that, and catches up after a stall without skipping
-    # the frames in between. 0: every frame is processed, however late. With a queue of one
-    # frame (ORB-SLAM's ROS node subscribes with a queue of 1), the fr3 replay with blur
-    # (30 Hz) dropped 2.6% of its frames on an idle 2-core machine, on stalls of a frame or
-    # two, and a KITTI run (10 Hz) whose tracker waited 0.8 s for local mapping lost its map
-    # on the 5-frame gap it then had to bridge.
+    # Paced threaded runs (speed > 0) with prefetch: False (the default, for recorded files:
+    # image folders, datasets, videos) processes every frame; a run that the machine cannot
+    # keep at the camera's rate falls behind the clock instead, as ORB-SLAM3's example
+    # programs do, and stats.json says by how much (real_time). True (a live source,
+    # ``orbslam-hgcn run --drop-late``) drops frames as a camera driver whose queue holds
+    # frame_buffer_s seconds of frames does: see frame_buffer_s.
+    drop_late: bool = False
+    # With drop_late: a frame is dropped unprocessed when the camera would already have
+    # delivered the frames of the next frame_buffer_s seconds by the time the system is
+    # ready for it (counted as "dropped" in stats.json): the system never falls further
+    # behind than that, and catches up after a stall without skipping the frames in
+    # between. 0: no frame is dropped. With a queue of one frame (ORB-SLAM's ROS node
+    # subscribes with a queue of 1), the fr3 replay with blur (30 Hz) dropped 2.6% of its
+    # frames on an idle 2-core machine, on stalls of a frame or two, and a KITTI run (10 Hz)
+    # whose tracker waited 0.8 s for local mapping lost its map on the 5-frame gap it then
+    # had to bridge.
     frame_buffer_s: float = 0.5
-    # Paced threaded runs: after handing a keyframe to local mapping, the tracker waits (at
-    # most this many seconds, and never past half the frame queue after the next frame's
-    # arrival, so that no frame is dropped for it) until mapping has finished it, so that
-    # the next frames see its points and pose as a sequential run would; the frames that
-    # arrive meanwhile wait in the frame queue. When every keyframe is mapped within the
-    # bound, the run gives exactly the sequential run's result. 0: never waits (as
-    # ORB-SLAM's threads).
-    sync_mapping_s: float = 0.5
+    # Threaded runs: after handing a keyframe to local mapping, the tracker waits (at
+    # most this many seconds) until mapping has finished it, so that the next frames are
+    # tracked against its points and pose as a sequential run would track them; the frames
+    # that arrive meanwhile wait and the run falls behind the clock (it catches up at the
+    # next frames, which are due already). When every keyframe is mapped within the bound,
+    # the run gives exactly the sequential run's result. With drop_late the wait also ends
+    # half the frame queue after the next frame's arrival, so that no frame is dropped for
+    # it. Unpaced runs (speed 0) wait too: ahead of mapping, a KITTI run under load lost its
+    # track on frame 24. 0: never waits (as ORB-SLAM's threads). Frames tracked ahead of a busy mapping
+    # are tracked against a stale local map, and their poses drift from the keyframes':
+    # with 1.5 s of mapping stalled on a synthetic replay, 20-30 mm against 1 mm for the
+    # keyframes. The default bound (5 s, was 0.5 s) only guards against a stalled stage: on
+    # a loaded 2-core machine KITTI keyframes took up to 3 s to map.
+    sync_mapping_s: float = 5.0
+    # Threads that OpenCV's and faiss's (OpenMP) pools may start in the process that tracks
+    # and maps (System.run sets them, stats.json records them; the extraction process uses
+    # one OpenCV thread). 0: the libraries' own defaults (one per core). One thread was
+    # expected to help on 2 cores shared by tracking, mapping, extraction and BA, but unpaced
+    # KITTI runs on a shared machine (load average 11-17, alternated) gave 3.4 and 2.0
+    # frames/s with 1 against 3.1 and 4.1 with the defaults (HGCN insert step median 287 and
+    # 458 ms against 214 and 211 ms), so the defaults stay until a quieter measurement.
+    library_threads: int = 0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed) and self.speed >= 0):
             raise ConfigError(f"threads.speed: must be a finite number >= 0 (0: no pacing), found {self.speed!r}")
         if not (math.isfinite(self.keyframe_wait_s) and self.keyframe_wait_s >= 0):
             raise ConfigError(f"threads.keyframe_wait_s: must be a finite number >= 0, found {self.keyframe_wait_s!r}")
+        if not (isinstance(self.library_threads, int) and self.library_threads >= 0):
+            raise ConfigError(f"threads.library_threads: must be an integer >= 0 (0: the libraries' defaults), "
+                              f"found {self.library_threads!r}")
         if not (math.isfinite(self.sync_mapping_s) and self.sync_mapping_s >= 0):
             raise ConfigError(f"threads.sync_mapping_s: must be a finite number >= 0 (0: off), found {self.sync_mapping_s!r}")
         if not (math.isfinite(self.frame_buffer_s) and self.frame_buffer_s >= 0):

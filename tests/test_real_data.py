@@ -127,16 +127,16 @@ def test_euroc_sample_runs_end_to_end_with_its_distortion(euroc_sample, tmp_path
     assert f["frames"] == 95 == f["tracked"] + f["lost"] + f["not_initialized"] + f["reset"] + f["dropped"]
 
 
-def _stalled_mapping_run(kitti_sample, wait_s: float) -> System:
+def _stalled_mapping_run(kitti_sample, **threads) -> System:
     """Threaded, paced run over KITTI frames 40-89 (the CLI's defaults: KITTI's settings,
-    the HGCN vocabulary) whose local mapping stalls 0.8 s on its seventh keyframe, as when
-    another job takes the CPU: at 10 Hz forward driving the points of a keyframe leave the
-    view within about half a second."""
+    the HGCN vocabulary, with ``threads`` settings) whose local mapping stalls 0.8 s on its
+    seventh keyframe, as when another job takes the CPU: at 10 Hz forward driving the
+    points of a keyframe leave the view within about half a second."""
     from orbslam_hgcn.vocabulary import load_vocabulary
 
     seq = open_sequence("kitti", kitti_sample)
     path, settings = dataset_settings(seq.camera, "kitti")
-    c = Configs.from_layers([(settings, path), ({"threads": {"keyframe_wait_s": wait_s}}, "test")])
+    c = Configs.from_layers([(settings, path), ({"threads": threads}, "test")])
     system = System(seq.camera, c, vocabulary=load_vocabulary("hgcn"), sequential=False)
     process = system.mapper.process
 
@@ -150,16 +150,27 @@ def _stalled_mapping_run(kitti_sample, wait_s: float) -> System:
     return system
 
 
+def test_a_recorded_sequence_beside_a_stalled_mapping_tracks_every_frame_late(kitti_sample):
+    """The defaults: the tracker waits for local mapping to finish each keyframe
+    (threads.sync_mapping_s), the stall included, and the frames that arrive meanwhile
+    wait: every frame is tracked, none dropped, and the run records how late it fell."""
+    s = _stalled_mapping_run(kitti_sample).stats()
+    assert s["map_resets"] == 0 and s["frames"]["lost"] == 0, s["frames"]
+    assert s["frames"]["tracked"] == 50 and s["frames"]["dropped"] == 0, s["frames"]
+    assert s["timing_ms"]["mapping_sync"]["max"] > 700.0  # the stall was waited for
+    assert s["real_time"]["lag_ms"]["count"] == 50 and s["real_time"]["lag_ms"]["max"] > 700.0
+
+
 def test_a_due_keyframe_is_mapped_before_tracking_loses_the_map(kitti_sample):
-    """When a frame tracks fewer than keyframe_urgent_inliers points and mapping is busy,
-    the tracker waits (at most threads.keyframe_wait_s) for mapping to take a keyframe,
-    makes it from that frame and waits for its points, and the frames that arrive
-    meanwhile queue up (threads.frame_buffer_s) and are tracked late: the run keeps its
-    map through the stall (3 of 3 runs here). Without the wait the same run is lost for
-    good on the fourth frame after the stall began (3 of 3)."""
-    s = _stalled_mapping_run(kitti_sample, 0.5).stats()
+    """Without the mapping sync (sync_mapping_s 0, as ORB-SLAM's threads): when a frame
+    tracks fewer than keyframe_urgent_inliers points and mapping is busy, the tracker
+    waits (at most threads.keyframe_wait_s) for mapping to take a keyframe, makes it from
+    that frame and waits for its points, and the frames that arrive meanwhile wait: the
+    run keeps its map through the stall. Without that wait either, the same run is lost
+    for good on the fourth frame after the stall began (3 of 3)."""
+    s = _stalled_mapping_run(kitti_sample, sync_mapping_s=0.0, keyframe_wait_s=0.5).stats()
     assert s["map_resets"] == 0 and s["frames"]["lost"] == 0, s["frames"]
     assert s["timing_ms"]["keyframe_wait"]["count"] > 0
-    assert s["frames"]["tracked"] + s["frames"]["dropped"] == 50, s["frames"]
-    no_wait = _stalled_mapping_run(kitti_sample, 0.0).stats()
+    assert s["frames"]["tracked"] == 50 and s["frames"]["dropped"] == 0, s["frames"]
+    no_wait = _stalled_mapping_run(kitti_sample, sync_mapping_s=0.0, keyframe_wait_s=0.0).stats()
     assert no_wait["map_resets"] > 0 or no_wait["frames"]["lost"] > 10, no_wait["frames"]

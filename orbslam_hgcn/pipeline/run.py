@@ -132,6 +132,7 @@ def run_dataset(
     sequential: bool = False,
     speed: float | None = None,
     on_bad_frame: str = "skip",
+    drop_late: bool = False,
 ) -> RunReport:
     """Open a dataset, run the system over it, write the results into ``out``.
 
@@ -144,7 +145,9 @@ def run_dataset(
     ``sequential``: local mapping and loop closing in order after each frame (reproducible
     results) instead of in worker threads. ``speed``: threaded runs take frames no faster
     than this many times the rate of their timestamps (0: as fast as they are processed);
-    None: ``threads.speed`` of the config (default 1).
+    None: ``threads.speed`` of the config (default 1). ``drop_late``: a paced threaded run
+    drops the frames that wait longer than ``threads.frame_buffer_s`` (a live source), as
+    ``threads.drop_late: true`` of the config does; otherwise every frame is processed.
 
     ``rerun``: the ``--rerun`` tokens (``["spawn"]``, ``["save", "FILE.rrd"]``,
     ``["connect", "HOST:PORT"]``) to visualise the run in rerun as it goes
@@ -174,6 +177,8 @@ def run_dataset(
     configs = Configs.from_layers([(settings, settings_path or ""), (user_layer, config or "")])
     if speed is not None:
         configs = dataclasses.replace(configs, threads=dataclasses.replace(configs.threads, speed=speed))
+    if drop_late:
+        configs = dataclasses.replace(configs, threads=dataclasses.replace(configs.threads, drop_late=True))
     if max_frames is not None and max_frames < 1:
         raise OrbslamError(f"--max-frames must be at least 1, found {max_frames}")
     if localization and load_map is None:
@@ -264,6 +269,19 @@ def run_dataset(
     return RunReport(paths, stats, ate, extra["interrupted"], end)
 
 
+def _real_time_line(rt: dict[str, Any]) -> str:
+    """How the run kept up with its camera (System.real_time)."""
+    rtf = rt.get("real_time_factor")
+    line = "real time: " + (f"{rtf:.2f}x the camera's rate" if rtf is not None else "n/a")
+    lag = rt.get("lag_ms", {})
+    if lag.get("count"):
+        line += f", lag behind the camera p95 {lag['p95']:.0f} ms, max {lag['max']:.0f} ms"
+    lat = rt.get("latency_ms", {})
+    if lat.get("count"):
+        line += f"; frame latency p95 {lat['p95']:.0f} ms"
+    return line
+
+
 def format_report(report: RunReport) -> list[str]:
     """Human-readable summary lines of a run."""
     s = report.stats
@@ -275,6 +293,7 @@ def format_report(report: RunReport) -> list[str]:
         f"{f['not_initialized']}, discarded by map resets {f['reset']} ({s['map_resets']} resets), "
         f"dropped behind the camera {f.get('dropped', 0)}",
         f"keyframes {s['keyframes']}, map points {s['map_points']}, final state: {s['final_state']}",
+        _real_time_line(s.get("real_time", {})),
         "tracking ms/frame: median {median:.1f}, p95 {p95:.1f}, mean {mean:.1f}".format(**t["tracking_per_frame"])
         + " (CPU median {median:.1f})".format(**t["tracking_cpu_per_frame"]),
         "local mapping ms/keyframe: median {median:.0f}, p95 {p95:.0f}, mean {mean:.0f}".format(

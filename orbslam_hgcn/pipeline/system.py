@@ -15,7 +15,10 @@ in child processes. :meth:`System.run` then reads images ahead on a reader threa
 extracts the next frame's features in a child process while the current one is tracked,
 and takes frames no faster than their timestamps say a camera delivers them
 (``threads.speed``): local mapping makes keyframes when it is free, so a run faster than
-the camera would map with fewer keyframes, the fewer the faster the machine.
+the camera would map with fewer keyframes, the fewer the faster the machine. Every frame
+of a recorded sequence is processed: a machine too slow for the camera's rate falls behind
+the clock, and :meth:`System.stats` says by how much (``real_time``); only a live source
+drops late frames (``threads.drop_late``).
 On a machine with few cores the real-time path goes first: the BA processes and the worker
 threads run at a lower CPU priority (``threads.solver_nice``, ``threads.worker_nice``).
 Threads and processes live from the first frame to :meth:`System.close`,
@@ -27,7 +30,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import queue
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -87,6 +92,21 @@ INTERRUPTED = "interrupted (Ctrl-C)"  # RunSummary.stop_reason
 TERMINATED = "terminated (SIGTERM)"
 MAX_LOST_EXTRACTION = 3  # extraction processes a run may lose before it stops
 MAX_BAD_FRAMES_LISTED = 100  # unreadable frames listed one by one in the stats
+
+
+def limit_library_threads(n: int) -> dict[str, int]:
+    """Let OpenCV and faiss (when loaded: the vocabularies' word search) use ``n`` threads
+    in this process (``threads.library_threads``; 0: leave their defaults); returns the
+    counts now in force, by library."""
+    if n > 0:
+        cv2.setNumThreads(n)
+    counts = {"opencv": int(cv2.getNumThreads())}
+    faiss = sys.modules.get("faiss")
+    if faiss is not None:
+        if n > 0:
+            faiss.omp_set_num_threads(n)
+        counts["faiss"] = int(faiss.omp_get_max_threads())
+    return counts
 
 
 def warm_up_kernels() -> float:
@@ -218,10 +238,11 @@ class _Prefetch:
     when the job starts; if the state has changed when the frame is processed,
     :meth:`System.process` extracts again.
 
-    With ``buffer_s`` > 0, a paced run behind its camera drops frames as a camera driver
-    whose queue holds ``buffer_s`` seconds of frames does: a frame is dropped, unprocessed,
-    when the camera would already have delivered the frames of the next ``buffer_s``
-    seconds by the time the system is ready for it. 0: no frame is dropped.
+    With ``buffer_s`` > 0 (``threads.drop_late``: a live source), a paced run behind its
+    camera drops frames as a camera driver whose queue holds ``buffer_s`` seconds of frames
+    does: a frame is dropped, unprocessed, when the camera would already have delivered the
+    frames of the next ``buffer_s`` seconds by the time the system is ready for it. 0 (a
+    recorded sequence): no frame is dropped.
     """
 
     def __init__(
@@ -375,6 +396,12 @@ class System:
         # Frames skipped because their image could not be read: {frame, t, error}.
         self.bad_frames: list[dict[str, Any]] = []
         self.n_extraction_lost = 0  # extraction processes that died during the run
+        self.library_threads: dict[str, int] = {}  # set by run(): threads of OpenCV and faiss
+        # Paced runs: per frame processed, how late (ms) its pose came out after the camera
+        # would have delivered it; the camera time and wall time the run spanned (s).
+        self.lags_ms: list[float] = []
+        self._span: tuple[float, float] | None = None  # (first frame's perf_counter, timestamp)
+        self._last_out: tuple[float, float] | None = None  # (last pose's perf_counter, timestamp)
         self._resume_by: float | None = None  # see run(): the latest a keyframe may hold the tracker
         # Called as observer(system, record, result) after every frame of :meth:`run`
         # (visualisation, progress reporting); they must not change the map.
@@ -527,7 +554,8 @@ class System:
         """A keyframe was due on this frame but local mapping was busy (result.keyframe_starved):
         wait for mapping to take one, make it from this frame, and wait for mapping to
         triangulate its points, all within threads.keyframe_wait_s, so that the next frame
-        finds a local map. A paced run drops the frames that arrive meanwhile."""
+        finds a local map. The frames that arrive meanwhile wait (with threads.drop_late,
+        a paced run drops those beyond its frame queue)."""
         t0 = time.perf_counter()
         deadline = t0 + self.configs.threads.keyframe_wait_s
         if stages.wait_for_mapping(self.configs.threads.keyframe_wait_s):
@@ -615,6 +643,7 @@ class System:
         # Threaded runs take frames no faster than the camera would deliver them; sequential
         # runs give the same result at any pace.
         pacer = _Pacer(0.0 if self.sequential else threads.speed, threading.Event())
+        self.library_threads = limit_library_threads(threads.library_threads)
         prefetch = None
         try:
             stages = self.stages  # threaded: worker threads and the local BA process start now
@@ -635,7 +664,8 @@ class System:
                         self._extraction.start()  # before the reader takes the first frame
                     finally:
                         warm.join()
-                prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=threads.frame_buffer_s)
+                buffer_s = threads.frame_buffer_s if threads.drop_late else 0.0
+                prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=buffer_s)
             if isinstance(stages, ThreadedStages):
                 stages.wait_ready()
             stamps = np.asarray(sequence.timestamps, dtype=np.float64)  # as announced
@@ -664,11 +694,13 @@ class System:
                 if rec is None:
                     continue
                 t_frame = time.perf_counter()
-                # A keyframe's mapping may hold the tracker (threads.sync_mapping_s), but not so
-                # long that the next frame would wait more than half the frame queue.
+                # A keyframe's mapping may hold the tracker (threads.sync_mapping_s); with
+                # drop_late, not so long that the next frame would wait more than half the frame
+                # queue. A recorded sequence loses no frame to the wait: it runs late.
                 due = pacer.due(float(stamps[i])) if i < n else None
-                self._resume_by = None if due is None else due + 0.5 * threads.frame_buffer_s
+                self._resume_by = math.inf if due is None or not threads.drop_late else due + 0.5 * threads.frame_buffer_s
                 result = self.process(rec.image, rec.timestamp, rec.index, features)
+                self._clock_frame(pacer, rec.timestamp, features)
                 if self.observers:
                     with self.map.lock:
                         for observe in self.observers:
@@ -710,6 +742,39 @@ class System:
             self._close_quietly()
             raise
         return RunSummary(done, stop_reason is not None, time.perf_counter() - t0, stop_reason)
+
+    def _clock_frame(self, pacer: _Pacer, timestamp: float, features: Features | None) -> None:
+        """Note when the pose of the frame of ``timestamp`` came out: its lag behind the
+        camera (paced runs) and the span of the run (real-time factor)."""
+        now = time.perf_counter()
+        if self._span is None and np.isfinite(timestamp):
+            start = self.frame_started[-1] if self.frame_started else now
+            self._span = (features.started if features is not None else start, timestamp)
+        if np.isfinite(timestamp):
+            self._last_out = (now, timestamp)
+        due = pacer.due(timestamp)
+        if due is not None:
+            self.lags_ms.append(1000.0 * (now - due))
+
+    def real_time(self) -> dict[str, Any]:
+        """How the run kept up with its camera: ``real_time_factor`` (camera seconds of the
+        frames processed per wall second, from the first frame's extraction to the last
+        pose; below 1 the run fell behind a camera at 1x), ``lag_ms`` (paced runs: per frame,
+        from when the camera delivered it to its pose; max and p95 say how far behind real
+        time the run fell), ``latency_ms`` (per frame, from the start of its extraction to
+        its pose), frames dropped (only with threads.drop_late)."""
+        rtf = None
+        if self._span is not None and self._last_out is not None and self._last_out[1] > self._span[1]:
+            rtf = (self._last_out[1] - self._span[1]) / max(self._last_out[0] - self._span[0], 1e-9)
+        t = self.configs.threads
+        return {
+            "speed": 0.0 if self.sequential else t.speed,
+            "drop_late": bool(t.drop_late and not self.sequential),
+            "real_time_factor": rtf,
+            "lag_ms": summary_ms(self.lags_ms),
+            "latency_ms": summary_ms(self.timings["frame"]),
+            "dropped": sum(1 for r in self.tracker.records if r.dropped),
+        }
 
     def _read_frame(self, sequence: Sequence, i: int, stamps: np.ndarray) -> FrameRecord | Skipped:
         """Frame ``i`` of ``sequence``, or a :class:`Skipped` saying why it cannot be read
@@ -765,8 +830,10 @@ class System:
                 "sequential": self.sequential,
                 "process_solver": self.configs.threads.process_solver,
                 "speed": 0.0 if self.sequential else self.configs.threads.speed,
+                "library_threads": self.library_threads,
             },
             "events": self.events,
+            "real_time": self.real_time(),
             "timing_ms": {
                 "extraction_per_frame": summary_ms(self.timings["extraction"]),
                 "tracking_per_frame": summary_ms(self.timings["tracking"]),

@@ -465,6 +465,17 @@ class Tracker:
         if frame is not self.last_frame or self.state != TrackingState.OK or frame.T_cw is None:
             return None
         kf, _ = self._maybe_keyframe(frame, n_in)
+        if kf is not None:
+            # The frame's record was written relative to the reference keyframe it was tracked
+            # in; it now refers to the keyframe made from it (ORB-SLAM: a frame's reference is
+            # the keyframe it became), so the pose written for it is that keyframe's, however
+            # local BA moves it. Relative to the old reference, the frame would keep its
+            # tracked pose while BA moved its keyframe: over a loaded KITTI run such frames
+            # were 25-39 cm off their own keyframe's pose.
+            rec = self.records[-1]
+            if rec.frame_id == frame.id and rec.generation == self.generation:
+                rec.ref_kf_id, rec.T_cr = kf.id, frame.T_cw @ kf.T_wc
+            frame.ref_kf_id = kf.id
         return kf
 
     def _maybe_keyframe(self, frame: Frame, n_in: int) -> tuple[KeyFrame | None, bool]:
