@@ -16,17 +16,34 @@ Vocabularies timed:
 
 Printed per vocabulary: median CPU milliseconds (and wall milliseconds) over ``--runs``
 frames for ``transform_words`` (descriptors -> word ids) and ``transform`` (BoW +
-FeatureVector), with one thread, and the IVF search's agreement with the exact nearest
-centroid. CPU time is reported first because the machines this runs on are shared: wall
-time there includes waiting for a core.
+FeatureVector), and the IVF search's agreement with the exact nearest centroid. CPU time
+is reported first because the machines this runs on are shared: wall time there includes
+waiting for a core.
 
-    OMP_NUM_THREADS=1 python bench/bench_vocab_quantise.py
+Threads, pinned and as run: the vocabularies run a frame's faiss search on one OpenMP
+thread of the calling thread (:class:`~orbslam_hgcn.vocabulary.graph.faiss_threads`) and
+the HGCN layers without BLAS, whatever the process's thread settings; the shipped HGCN
+and k-means vocabularies are also timed with that pinning off (faiss's default, one
+OpenMP thread per core), in the same process. ``--threads`` sets the process default.
+
+``--system``: the figure a keyframe really pays. Runs the system on the KITTI 00 sample
+(``--system-frames`` frames, 2000 features, threaded, unpaced: ``--speed 0``) once per
+vocabulary and repeat, orb and hgcn (and kmeans) interleaved in this one bench process,
+and prints from each run's stats.json the median ``words`` step (BoW of a keyframe) and
+``insert`` step (words, then the map updates under the map lock) of local mapping, their
+ratios to the ORB tree's, frames/s, tracked share and keyframe ATE.
+
+    python bench/bench_vocab_quantise.py [--runs 300] [--system] [--system-reps 2]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -35,7 +52,7 @@ import faiss
 import numpy as np
 
 from orbslam_hgcn.features.orb import ORBExtractor
-from orbslam_hgcn.vocabulary import load_vocabulary
+from orbslam_hgcn.vocabulary import graph, load_vocabulary
 from orbslam_hgcn.vocabulary.base import DEFAULT_FILES, VocabularyMetadata
 from orbslam_hgcn.vocabulary.graph import fit_pca
 from orbslam_hgcn.vocabulary.flat import KMeansVocabulary, kmeans, nearest
@@ -43,6 +60,7 @@ from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
+KITTI = SHARED / "kitti00_first160" / "sequences" / "00"
 
 
 def query_frames() -> list[np.ndarray]:
@@ -85,6 +103,47 @@ def flat_layout(desc: np.ndarray, words: int) -> tuple[KMeansVocabulary, KMeansV
             KMeansVocabulary(pca, cent, coarse, wc, np.zeros((0, 20), np.float32), 0, idf, meta))
 
 
+def system_runs(vocabs: list[str], reps: int, frames: int) -> None:
+    """Run the system on KITTI once per vocabulary and repeat (interleaved) and print the
+    local mapping steps a keyframe pays for its words (see the module docstring)."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    rows: dict[str, list[dict]] = {v: [] for v in vocabs}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(reps):
+            for v in vocabs:
+                out = Path(tmp) / f"{v}_{r}"
+                cmd = [sys.executable, "-m", "orbslam_hgcn", "run", str(KITTI), "--out", str(out), "--vocab", v,
+                       "--speed", "0", "--no-progress", "--max-frames", str(frames)]
+                subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                st = json.loads((out / "stats.json").read_text())
+                steps = st["timing_ms"]["mapping_steps"]
+                rows[v].append({
+                    "words": steps["words"]["median"], "words_cpu": steps["words_cpu"]["median"],
+                    "insert": steps["insert"]["median"],
+                    "keyframes": steps["insert"]["count"], "fps": st["frames"]["tracked"] / st["wall_s"],
+                    "tracked": st["frames"]["tracked_share"],
+                    "ate_cm": 100 * st["ate_sim3"]["keyframes"].get("rmse_m", float("nan")),
+                })
+    print(f"\nin the running system: KITTI 00, {frames} frames of 2000 features, threaded, unpaced, "
+          f"{reps} run(s) per vocabulary interleaved; medians per keyframe over each run, then the median over runs "
+          f"(load average before: {os.getloadavg()[0]:.1f})")
+    print("(words: wall ms; words CPU: CPU ms of the mapping thread, which runs the search; insert: wall ms)")
+    print(f"{'vocab':8s} {'words':>7s} {'x orb':>6s} {'words CPU':>10s} {'x orb':>6s} {'insert':>7s} {'x orb':>6s} "
+          f"{'keyframes':>10s} {'frames/s':>9s} {'x orb':>6s} {'tracked':>8s} {'KF ATE cm':>10s}")
+    med = {v: {k: float(np.median([row[k] for row in rows[v]])) for k in rows[v][0]} for v in vocabs}
+    ref = med.get("orb")
+    for v in vocabs:
+        m = med[v]
+        ratio = (lambda k: f"{m[k] / ref[k]:6.2f}") if ref else (lambda k: "")
+        print(f"{v:8s} {m['words']:7.1f} {ratio('words')} {m['words_cpu']:10.1f} {ratio('words_cpu')} "
+              f"{m['insert']:7.1f} {ratio('insert')} "
+              f"{m['keyframes']:10.0f} {m['fps']:9.1f} {ratio('fps')} {m['tracked']:8.3f} {m['ate_cm']:10.2f}")
+    for v in vocabs:
+        print(f"  {v} per run: " + "; ".join(
+            f"words {row['words']:.1f} (CPU {row['words_cpu']:.1f}) insert {row['insert']:.1f} fps {row['fps']:.1f}"
+            for row in rows[v]))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--train", type=Path, default=None,
@@ -92,9 +151,18 @@ def main(argv: list[str] | None = None) -> int:
                          "default: the query frames' own descriptors")
     ap.add_argument("--words", type=int, default=10000)
     ap.add_argument("--runs", type=int, default=300)
-    ap.add_argument("--threads", type=int, default=1, help="faiss threads")
+    ap.add_argument("--threads", type=int, default=0, help="faiss threads of the process (default: faiss's own)")
+    ap.add_argument("--system", action="store_true", help="also time words in the running system (KITTI)")
+    ap.add_argument("--system-only", action="store_true", help="only the running system")
+    ap.add_argument("--system-vocabs", nargs="+", default=["orb", "hgcn", "kmeans"])
+    ap.add_argument("--system-reps", type=int, default=1)
+    ap.add_argument("--system-frames", type=int, default=160)
     args = ap.parse_args(argv)
-    faiss.omp_set_num_threads(args.threads)
+    if args.system_only:
+        system_runs(args.system_vocabs, args.system_reps, args.system_frames)
+        return 0
+    if args.threads > 0:
+        faiss.omp_set_num_threads(args.threads)
     frames = query_frames()
     if args.train is not None:
         with np.load(args.train) as z:
@@ -106,7 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     if len(train) > 300_000:
         train = train[np.sort(rng.choice(len(train), 300_000, replace=False))]
     print(f"queries: {len(frames)} real frames x 1000 ORB descriptors (TUM fr3 + EuRoC samples); "
-          f"timing vocabularies trained on {len(train)} descriptors of {src}; {args.threads} faiss thread(s); "
+          f"timing vocabularies trained on {len(train)} descriptors of {src}; {faiss.omp_get_max_threads()} faiss "
+          f"thread(s) in the process, one per frame search; "
           f"{args.runs} runs each")
     tree = train_tree_vocabulary(train, np.arange(len(train)) // 1000, k=10, levels=4, progress=False)
     ivf, flat = flat_layout(train, args.words)
@@ -145,6 +214,21 @@ def main(argv: list[str] | None = None) -> int:
             print(f"shipped hgcn, network assignment by stage: layers {e_cpu:.2f} ms CPU ({e_wall:.2f} wall), "
                   f"prototype search {s_cpu:.2f} ({s_wall:.2f}); centroid assignment instead: "
                   f"{c_cpu:.2f} ({c_wall:.2f})")
+    print(f"pinned (one faiss thread per frame search) against faiss's default "
+          f"({faiss.omp_get_max_threads()} OpenMP threads), transform_words, same process:")
+    for kind in ("hgcn", "kmeans"):
+        if DEFAULT_FILES[kind].is_file():
+            v = load_vocabulary(DEFAULT_FILES[kind])
+            pinned = timeit(v.transform_words, frames, args.runs)
+            small, graph.SMALL_BATCH = graph.SMALL_BATCH, 0
+            try:
+                free = timeit(v.transform_words, frames, args.runs)
+            finally:
+                graph.SMALL_BATCH = small
+            print(f"  shipped {kind:6s} pinned {pinned[0]:7.2f} ms CPU ({pinned[1]:7.2f} wall)   "
+                  f"default threads {free[0]:7.2f} ({free[1]:7.2f})")
+    if args.system:
+        system_runs(args.system_vocabs, args.system_reps, args.system_frames)
     return 0
 
 

@@ -593,6 +593,11 @@ class LocalMappingConfig:
     keyframe_culling: bool = True
     cull_kf_redundant: float = 0.9
     cull_kf_min_obs: int = 3
+    # Track words (flat vocabularies: kmeans, hgcn): a keyframe's BoW vector, made after
+    # triangulation and fusion, takes for each feature with a track the word of the mean of
+    # the track's reduced descriptors in keyframes up to this one
+    # (orbslam_hgcn.vocabulary.track_words); FeatureVectors and frames keep lone words.
+    track_words: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

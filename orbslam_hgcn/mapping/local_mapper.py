@@ -3,12 +3,16 @@
 ORB-SLAM's local mapping thread as a plain class (Mur-Artal, Montiel & Tardos, T-RO 2015,
 Sec. VI; LocalMapping::Run of ORB-SLAM2), in its order:
 
-1. keyframe insertion: BoW vector (with a vocabulary), descriptors and viewing ranges of
-   the points the tracker linked, covisibility and spanning-tree links; points created
-   with the keyframe enter the recent list;
+1. keyframe insertion: BoW vector (with a vocabulary; outside the map lock, timed apart as
+   ``words``, and as ``words_cpu``: CPU time of the mapping thread), descriptors and
+   viewing ranges of the points the tracker linked, covisibility and spanning-tree links;
+   points created with the keyframe enter the recent list;
 2. recent map point culling (:mod:`orbslam_hgcn.mapping.culling`);
 3. new points by triangulation (:mod:`orbslam_hgcn.mapping.triangulate`);
-4. duplicate fusion with the neighbourhood (:mod:`orbslam_hgcn.mapping.fuse`);
+4. duplicate fusion with the neighbourhood (:mod:`orbslam_hgcn.mapping.fuse`); then, with
+   ``track_words`` and a flat vocabulary, the keyframe's BoW vector is remade from its
+   features' causal tracks (:mod:`orbslam_hgcn.vocabulary.track_words`; timed as
+   ``track_words``) before the loop closer adds it to the keyframe database;
 5. local bundle adjustment (gtsam, via :mod:`orbslam_hgcn.backend`): the keyframe and its
    covisible keyframes free, every other keyframe seeing their points fixed, Huber
    kernel, 5 iterations, outliers out, 10 more, CPU time bounded, and stopped early when
@@ -46,6 +50,7 @@ from orbslam_hgcn.map.window import apply_window, local_window
 from orbslam_hgcn.mapping.culling import cull_recent_points, redundant_keyframes
 from orbslam_hgcn.mapping.fuse import search_in_neighbors
 from orbslam_hgcn.mapping.triangulate import create_new_points
+from orbslam_hgcn.vocabulary.track_words import TrackWords
 
 log = logging.getLogger(__name__)
 
@@ -83,17 +88,30 @@ class LocalMapper:
         self.reset(m)
 
     def reset(self, m: Map) -> None:
-        """Work on map ``m`` from now on, forgetting the recent points."""
+        """Work on map ``m`` from now on, forgetting the recent points (and the track sums)."""
         self.map = m
         self.recent = np.zeros(0, dtype=np.int64)
+        self.track_words = None
+        if self.config.track_words and self.vocabulary is not None:
+            if hasattr(self.vocabulary, "words_of_points"):
+                self.track_words = TrackWords(self.vocabulary)
+            else:
+                log.warning("local_mapping.track_words needs a flat vocabulary (kmeans, hgcn): lone words")
+        self._lone: tuple[int, np.ndarray, np.ndarray] | None = None  # (kf id, reduced descriptors, words)
 
     def process(self, kf: KeyFrame) -> KeyFrame | None:
         """Run every local mapping step for a new keyframe; returns it for the loop closer,
         or None when it was culled meanwhile."""
         t_all, c_all = time.perf_counter(), time.process_time()
         m, cfg = self.map, self.config
-        with self._timed("insert"), m.lock:
-            self._insert(kf)
+        with self._timed("insert"):
+            if self.vocabulary is not None and kf.featvec is None:
+                c = time.thread_time()
+                with self._timed("words"):  # the descriptors never change: no map lock needed
+                    self._lone_words(kf)
+                self.timings["words_cpu"].append(1000.0 * (time.thread_time() - c))
+            with m.lock:
+                self._insert(kf)
         with self._timed("cull_points"), m.lock:
             self.recent, n_cull = cull_recent_points(m, self.recent, kf.id, cfg)
         # These two take the map lock per neighbour keyframe.
@@ -102,6 +120,11 @@ class LocalMapper:
             self.recent = np.concatenate([self.recent, new])
         with self._timed("fuse"):
             fused = search_in_neighbors(m, kf, cfg)
+        if self.track_words is not None and self._lone is not None and self._lone[0] == kf.id:
+            c = time.thread_time()
+            with self._timed("track_words"):
+                self._track_bow(kf)
+            self.timings["track_words_cpu"].append(1000.0 * (time.thread_time() - c))
         ba_ms = ba_cpu_ms = 0.0
         if cfg.local_ba and m.n_keyframes() > 2 and not kf.bad:
             t, c = time.perf_counter(), time.process_time()
@@ -131,8 +154,6 @@ class LocalMapper:
     def _insert(self, kf: KeyFrame) -> None:
         """ORB-SLAM2 ProcessNewKeyFrame for a keyframe whose observations are linked."""
         m = self.map
-        if self.vocabulary is not None and kf.featvec is None:
-            kf.bow, kf.featvec = self.vocabulary.transform(kf.keypoints.desc)
         _, pids = kf.observed_points()
         m.update_points(pids)
         # Points created with this keyframe (the initial map) are on probation like
@@ -141,6 +162,36 @@ class LocalMapper:
             first = np.array([m.point(int(p)).first_kf for p in pids], dtype=np.int64)
             self.recent = np.concatenate([self.recent, pids[first == kf.id]])
         m.update_connections(kf.id)
+
+    def _lone_words(self, kf: KeyFrame) -> None:
+        """The keyframe's lone BoW and feature vectors (kept for the track words)."""
+        v = self.vocabulary
+        if self.track_words is None:
+            kf.bow, kf.featvec = v.transform(kf.keypoints.desc)
+            return
+        x = v.project(kf.keypoints.desc)
+        words = v.words_of_points(x)
+        kf.bow, kf.featvec = v.vectors(words)
+        self._lone = (kf.id, x, words)
+
+    def _track_bow(self, kf: KeyFrame) -> None:
+        """Replace the keyframe's BoW vector by its track words' (the FeatureVector stays)."""
+        m = self.map
+        _, x, words = self._lone
+        self._lone = None
+        with m.lock:
+            if kf.bad:
+                return
+            idx, pids = kf.observed_points()
+            obs = [m.point(int(p)).observations for p in pids]
+            kf_ids = {j for o in obs for j in o if j != kf.id}
+            descs = {j: m.keyframe(j).keypoints.desc for j in kf_ids if m.owns(j)}
+            obs = [{j: i for j, i in o.items() if j == kf.id or j in descs} for o in obs]
+            if len(self.track_words) > 2 * m.n_points():  # drop the sums of culled and merged points
+                cached = np.fromiter(self.track_words.points(), np.int64)
+                self.track_words.forget(cached[m.bad_points(cached)])
+        kf.bow, _ = self.track_words.keyframe_bow(kf.id, kf.keypoints.desc, words, idx, pids, obs,
+                                                  descs.__getitem__, x=x)
 
     def _local_ba(self, kf: KeyFrame) -> None:
         m = self.map

@@ -21,7 +21,7 @@ import faiss
 import numpy as np
 
 from orbslam_hgcn.compiled import jit
-from orbslam_hgcn.vocabulary.graph import configure_faiss
+from orbslam_hgcn.vocabulary.graph import configure_faiss, faiss_threads
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +150,7 @@ class BallNetwork:
         for k, (wt, bias, swt, sbias, ci, co) in enumerate(self._layers):
             out = np.empty((len(v), wt.shape[1]), np.float32)
             if len(v):
-                _layer_rows(v @ wt, v @ swt, bias, sbias, ci, co, self._act_code, self.residual, R_MAX_UNIT,
+                _layer_rows(v, wt, swt, bias, sbias, ci, co, self._act_code, self.residual, R_MAX_UNIT,
                             k == len(self._layers) - 1, out)
             v = out
         return v
@@ -248,7 +248,8 @@ class PrototypeSearch:
         q[:, h.shape[1]] = np.einsum("nd,nd->n", h, h)
         q[:, h.shape[1] + 1] = 1.0
         q /= np.sqrt(np.einsum("nd,nd->n", q, q))[:, None]
-        return self.index.search(q, 1)[1][:, 0].astype(np.int32)
+        with faiss_threads(len(q)):
+            return self.index.search(q, 1)[1][:, 0].astype(np.int32)
 
 
 @jit
@@ -312,17 +313,29 @@ def _ball_linear_log(a, bias_pt, c, out):
 
 
 @jit
-def _layer_rows(a, b, bias_pt, sbias_pt, ci, co, act, residual, r_max_unit, last, out):
-    """One layer for lone nodes, row by row: a (N, d_out) = V W^T and b = V W_self^T are the
-    matrix products of both paths (from BLAS); out (N, d_out) receives the next layer's
-    tangent input, or, for the last layer (``last``), the output-ball points."""
-    n_out = a.shape[1]
+def _row_product(v, i, wt, row):
+    """row = V[i] W^T for the transposed weights wt (d_in, d_out)."""
+    for t in range(wt.shape[1]):
+        row[t] = 0.0
+    for k in range(wt.shape[0]):
+        e = v[i, k]
+        for t in range(wt.shape[1]):
+            row[t] += e * wt[k, t]
+
+
+@jit
+def _layer_rows(v, wt, swt, bias_pt, sbias_pt, ci, co, act, residual, r_max_unit, last, out):
+    """One layer for lone nodes, row by row: the products V W^T and V W_self^T of both paths
+    (wt, swt: transposed weights; the products are done here, not by BLAS, whose worker
+    threads spin for a frame's 20 x 20 products), then the ball operations; out (N, d_out)
+    receives the next layer's tangent input, or, for the last layer (``last``), the
+    output-ball points."""
+    n_out = wt.shape[1]
     s = np.empty(n_out)
     r = np.empty(n_out)
     row = np.empty(n_out)
-    for i in range(a.shape[0]):
-        for t in range(n_out):
-            row[t] = a[i, t]
+    for i in range(v.shape[0]):
+        _row_product(v, i, wt, row)
         _ball_linear_log(row, bias_pt, ci, s)
         _clip_tangent1(s, n_out, ci, r_max_unit)
         for t in range(n_out):
@@ -337,8 +350,7 @@ def _layer_rows(a, b, bias_pt, sbias_pt, ci, co, act, residual, r_max_unit, last
                 e = np.tanh(e)
             s[t] = e
         if residual:
-            for t in range(n_out):
-                row[t] = b[i, t]
+            _row_product(v, i, swt, row)
             _ball_linear_log(row, sbias_pt, ci, r)
             for t in range(n_out):
                 s[t] += r[t]

@@ -188,7 +188,12 @@ class Vocabulary(abc.ABC):
         feature vector indexes nodes this many levels above the words (ORB-SLAM: 4).
         Features whose word has zero IDF weight are left out of both (as DBoW2 does).
         """
-        words = self.transform_words(desc)
+        return self.vectors(self.transform_words(desc), levels_up)
+
+    def vectors(self, words: np.ndarray, levels_up: int = 4) -> tuple[BowVector, FeatureVector]:
+        """BoW vector and feature vector of one image from its features' (N,) words (see
+        :meth:`transform`)."""
+        words = np.asarray(words, dtype=np.int32)
         bow = self.bow_from_words(words)
         keep = self.idf[words] > 0 if len(words) else np.zeros(0, bool)
         fv = FeatureVector.from_nodes(self.word_nodes(words, levels_up), keep)

@@ -31,7 +31,7 @@ from orbslam_hgcn.config import HgcnTrainConfig
 from orbslam_hgcn.vocabulary.base import Vocabulary, VocabularyMetadata, now_iso, require
 from orbslam_hgcn.vocabulary.bow import idf_from_documents
 from orbslam_hgcn.vocabulary.descriptors import BINARY, FLOAT, descriptor_kind
-from orbslam_hgcn.vocabulary.graph import PCA, configure_faiss, fit_pca
+from orbslam_hgcn.vocabulary.graph import PCA, configure_faiss, faiss_threads, fit_pca
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +92,8 @@ class PointIndex:
 
     def search(self, x: np.ndarray, k: int = 1) -> np.ndarray:
         """(N, k) int64 nearest points of x (N, d), nearest first (-1 where fewer are found)."""
-        return self.index.search(np.ascontiguousarray(x, dtype=np.float32), k)[1]
+        with faiss_threads(len(x)):
+            return self.index.search(np.ascontiguousarray(x, dtype=np.float32), k)[1]
 
 
 def ivf_lists(points: np.ndarray, seed: int) -> np.ndarray:

@@ -1,0 +1,108 @@
+"""Track words: a keyframe's BoW from the causal means of its features' tracks. The words
+are those of the directly computed means, later keyframes never change them, and a lone
+frame relocalises against a map whose keyframes carry track words (end to end)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import vocab_fixtures as vf
+
+from orbslam_hgcn.config import LocalMappingConfig
+from orbslam_hgcn.datasets import open_sequence
+from orbslam_hgcn.pipeline.mapfile import install_map, load_map, save_system_map
+from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.vocabulary import load_vocabulary
+from orbslam_hgcn.vocabulary.track_words import TrackWords
+
+
+def _tracks(rng, n_kf=4, n_feat=300, n_points=120):
+    """Descriptors of n_kf keyframes, and point observations {kf: feature} (every point seen
+    in 2..n_kf keyframes, each time by a noisy copy of its own descriptor)."""
+    base = rng.integers(0, 256, (n_points, 32), dtype=np.uint8)
+    desc = [rng.integers(0, 256, (n_feat, 32), dtype=np.uint8) for _ in range(n_kf)]
+    obs = []
+    for p in range(n_points):
+        kfs = np.sort(rng.choice(n_kf, rng.integers(2, n_kf + 1), replace=False))
+        o = {}
+        for k in kfs.tolist():
+            i = int(rng.integers(0, n_feat))
+            while any(oo.get(k) == i for oo in obs + [o]):
+                i = int(rng.integers(0, n_feat))
+            flip = rng.random((32, 8)) < 0.08
+            desc[k][i] = base[p] ^ np.packbits(flip, axis=1)[:, 0]
+            o[k] = i
+        obs.append(o)
+    return desc, obs
+
+
+def _keyframe_args(desc, obs, kf, vocab):
+    pids = np.array([p for p, o in enumerate(obs) if kf in o], np.int64)
+    idx = np.array([obs[p][kf] for p in pids], np.int64)
+    return (kf, desc[kf], vocab.transform_words(desc[kf]), idx, pids, [obs[p] for p in pids], desc.__getitem__)
+
+
+@pytest.mark.parametrize("which", ["kmeans", "hgcn"])
+def test_track_words_are_the_words_of_causal_means_and_never_change(which):
+    vocab = vf.small_kmeans_vocab() if which == "kmeans" else vf.small_hgcn_vocab()
+    desc, obs = _tracks(np.random.default_rng(3))
+    tw = TrackWords(vocab)
+    got = {kf: tw.keyframe_bow(*_keyframe_args(desc, obs, kf, vocab))[1] for kf in range(4)}
+    n_changed = 0
+    for kf in range(4):
+        # Direct computation: mean of the reduced descriptors over keyframes <= kf.
+        args = _keyframe_args(desc, obs, kf, vocab)
+        words = args[2].copy()
+        for i, o in zip(args[3], args[5]):
+            causal = [vocab.project(desc[j][[f]])[0] for j, f in o.items() if j <= kf]
+            if len(causal) >= 2:
+                words[i] = vocab.words_of_points(np.mean(causal, 0, keepdims=True).astype(np.float32))[0]
+        assert np.array_equal(got[kf], words), kf
+        n_changed += int(np.sum(words != args[2]))
+        # A fresh cache that sees the later keyframes' observations already linked (as a
+        # threaded run may) gives the same words: they are never used.
+        assert np.array_equal(TrackWords(vocab).keyframe_bow(*args)[1], got[kf])
+    assert n_changed > 20  # the tracks do change words (the test can tell)
+    # The first keyframe's tracks hold only itself: its words are its lone words.
+    assert np.array_equal(got[0], vocab.transform_words(desc[0]))
+
+
+def test_track_words_need_a_flat_vocabulary():
+    with pytest.raises(ValueError, match="flat vocabulary"):
+        TrackWords(load_vocabulary("orb"))
+
+
+@pytest.fixture(scope="module")
+def track_mapped(synth_replay_100, tmp_path_factory):
+    seq = open_sequence("tum", synth_replay_100)
+    vocab = load_vocabulary("hgcn")
+    configs = Configs(local_mapping=dataclasses.replace(LocalMappingConfig(), track_words=True))
+    system = System(seq.camera, configs, vocabulary=vocab)
+    system.run(seq, 60, progress=False)
+    path = save_system_map(tmp_path_factory.mktemp("map") / "map.npz", system, "hgcn")
+    return seq, vocab, system, path
+
+
+def test_lone_frame_relocalises_against_track_words(track_mapped):
+    seq, vocab, mapping, path = track_mapped
+    kfs = [kf for kf in mapping.map.keyframes() if not kf.bad]
+    assert len(kfs) >= 4
+    # The database holds track words: most keyframes' BoW vectors differ from their lone ones.
+    differ = [not np.array_equal(kf.bow.words, vocab.bow(kf.keypoints.desc).words) for kf in kfs]
+    assert sum(differ) >= len(kfs) - 1  # the first keyframe has no earlier track mates
+    assert mapping.mapper.timings["track_words"]
+    m = load_map(path, vocab).map
+    system = System(seq.camera, vocabulary=vocab)
+    install_map(system, m, localization=True)
+    for i in range(30, 40):
+        system.process(seq[i].image, seq[i].timestamp, seq[i].index)
+    stats = system.stats()
+    # The first frame after the load is lost by construction and described alone.
+    assert stats["relocalization"]["successes"] >= 1 and stats["relocalization"]["history"][0][0] == 30
+    assert stats["frames"]["tracked"] == 10
+    # Its pose agrees with the mapping run's pose of the same frame.
+    loc = system.camera_trajectory()
+    ref = mapping.camera_trajectory()
+    j = ref.nearest(loc.timestamps[0], 1e-4)
+    assert j is not None
+    assert np.linalg.norm(loc.positions[0] - ref.positions[j]) < 0.01 * np.ptp(ref.positions, axis=0).max()
