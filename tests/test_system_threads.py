@@ -416,6 +416,32 @@ def test_tracking_first_lock_lets_the_priority_waiter_in_first():
         lock.release()
 
 
+def test_ctrl_c_while_waiting_for_the_lock_is_a_keyboard_interrupt():
+    """SIGINT reaches the main thread (the tracker) while it waits with priority: the wait
+    ends with KeyboardInterrupt (not an error of the lock), and the lock is left usable."""
+    import signal
+
+    lock = TrackingFirstLock()
+    holder_has_it, done = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with lock:
+            holder_has_it.set()
+            done.wait(5)
+
+    holder = threading.Thread(target=hold)
+    holder.start()
+    holder_has_it.wait(5)
+    threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT)).start()
+    with pytest.raises(KeyboardInterrupt):
+        lock.acquire_first()
+    assert lock._first_waiting == 0 and lock._owner != threading.get_ident()
+    done.set()
+    holder.join(5)
+    assert lock.acquire(timeout=1)  # free again, and takeable
+    lock.release()
+
+
 def test_ba_result_written_back_after_the_map_changed(sequential_runs):
     """A local BA solved without the map lock comes back to a map where keyframes were culled
     and points fused or discarded meanwhile: those are skipped, the rest is written."""
