@@ -119,7 +119,8 @@ def test_compare_marks_runs_with_untracked_frames_or_resets_as_failed(tmp_path):
         (out / "stats.json").write_text(json.dumps(stats))
         return SimpleNamespace(paths={"stats": out / "stats.json"})
 
-    comp = run_comparison(tmp_path / "seq", tmp_path / "out", runs=4, vocabs=["orb"], run_fn=fake_run)
+    (tmp_path / "seq").mkdir()
+    comp = run_comparison(tmp_path / "seq", tmp_path / "out", kind="tum", runs=4, vocabs=["orb"], run_fn=fake_run)
     failed = {r.run: r.failed for r in comp.runs}
     assert failed[1] is None and failed[4] is None
     assert "15 of 100 frames without a pose" in failed[2] and "1 map reset" in failed[3]

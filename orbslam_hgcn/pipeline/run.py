@@ -158,6 +158,8 @@ def run_dataset(
     rerun_sink = parse_rerun_arg(rerun) if rerun is not None else None
     if on_bad_frame not in ("skip", "stop"):
         raise OrbslamError(f"--on-bad-frame must be skip or stop, found {on_bad_frame!r}")
+    if max_frames is not None and max_frames < 1:
+        raise OrbslamError(f"--max-frames must be at least 1, found {max_frames}")
     out = check_output_folder(out)
     if save_map is not None:
         save_map = check_output_file(save_map, "--save-map")
@@ -174,8 +176,6 @@ def run_dataset(
     configs = Configs.from_layers([(settings, settings_path or ""), (user_layer, config or "")])
     if speed is not None:
         configs = dataclasses.replace(configs, threads=dataclasses.replace(configs.threads, speed=speed))
-    if max_frames is not None and max_frames < 1:
-        raise OrbslamError(f"--max-frames must be at least 1, found {max_frames}")
     if localization and load_map is None:
         raise OrbslamError("--localization needs a saved map: --load-map FILE")
     if load_map is not None:
