@@ -364,8 +364,8 @@ def test_process_solver_runs_at_lower_priority():
         assert os.getpriority(os.PRIO_PROCESS, child[0].pid) == min(os.getpriority(os.PRIO_PROCESS, 0) + 4, 19)
 
 
-def test_extraction_process_gives_the_direct_keypoints(tum_sample):
-    img = cv2.imread(str(sorted((tum_sample / "rgb").glob("*.png"))[0]), cv2.IMREAD_GRAYSCALE)
+def test_extraction_process_gives_the_direct_keypoints(tum_layout):
+    img = cv2.imread(str(sorted((tum_layout / "rgb").glob("*.png"))[0]), cv2.IMREAD_GRAYSCALE)
     cam = load_camera("tum_fr3")
     configs = {"normal": ORBConfig(), "init": ORBConfig(n_features=2000)}
     proc = ExtractionProcess(configs, cam)
