@@ -64,7 +64,7 @@ def _cases(x) -> dict[str, tuple[list[str], str]]:
         "vocab-info/missing": (["vocab", "info", "/nonexistent.npz"], "/nonexistent.npz"),
         "vocab-export/missing": (["vocab", "export", "/nonexistent.npz", "--out", out + "/v.txt"], "/nonexistent"),
         "lcd/missing": (["lcd", "--train", "/nonexistent", "--test", seq, "--gt", x.gt, "--out", out], "/nonexistent"),
-        "demo/missing": (["demo", "--out", out, "--rerun", "connect", "a:b:c", "--frames", "5"], "--rerun"),
+        "demo/bad-rerun": (["demo", "--out", out, "--rerun", "connect", "a:b:c", "--frames", "5"], "--rerun"),
         # an output path under a file
         "run/under": (["run", seq, "--out", under], "is a file"),
         "compare/under": (["compare", seq, "--out", under], "is a file"),
