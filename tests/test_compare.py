@@ -89,8 +89,9 @@ def test_demo_prints_hgcn_then_orb_and_reuses_the_cache(cache, tmp_path, capsys)
     assert [r["vocab"] for r in data["runs"]] == ["hgcn", "orb"] and all(r["ok"] for r in data["runs"])
     hgcn = json.loads((out / "hgcn" / "run1" / "stats.json").read_text())
     assert f"hgcn run 1: ATE {1000 * hgcn['ate_sim3']['keyframes']['rmse_m']:.2f} mm" in printed
-    # Measured on this 30-frame stretch: about 1 mm keyframe ATE with either vocabulary.
-    assert hgcn["ate_sim3"]["keyframes"]["rmse_m"] < 0.01
+    # Measured on this 30-frame stretch, threaded: 0.6-2.0 mm keyframe ATE with the HGCN
+    # vocabulary over 4 runs on a loaded 2-core machine; the bound is 2 mm above the worst.
+    assert hgcn["ate_sim3"]["keyframes"]["rmse_m"] < 0.004
     assert (out / "demo.rrd").is_file() and (out / "demo.rrd").stat().st_size > 0
 
 
