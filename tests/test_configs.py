@@ -46,10 +46,12 @@ def test_shipped_config_matches_published_calibration(name):
     assert cam.name == name
 
 
-def test_euroc_config_agrees_with_the_sample_sensor_yaml(euroc_sample):
+def test_euroc_config_agrees_with_the_sample_sensor_yaml(euroc_layout):
+    """The shipped euroc_cam0 camera is EuRoC's cam0 calibration as the reader reads it from
+    a sensor.yaml (the real sample's, or the stand-in's copy of the published one)."""
     from orbslam_hgcn.datasets.euroc import read_sensor_yaml
 
-    cam, _ = read_sensor_yaml(euroc_sample / "mav0" / "cam0" / "sensor.yaml")
+    cam, _ = read_sensor_yaml(euroc_layout / "mav0" / "cam0" / "sensor.yaml")
     assert cam == load_camera("euroc_cam0")
 
 
