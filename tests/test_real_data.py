@@ -104,7 +104,7 @@ def test_short_real_kitti_run_as_a_user_runs_it(kitti_sample, tmp_path, capsys):
     settings are picked from calib.txt both times, and the ATE printed is stats.json's.
 
     A paced threaded run drops the frames it falls behind on, so how many it tracks depends
-    on the machine's load (on a 2-core machine running four other test suites it dropped
+    on the machine's load (on a 2-core machine at load average 20 it dropped
     57 of 60): the threaded run is held to its accounting and wiring, the sequential one to
     the figures. Sequential: the map is made on frame 1 or 2, every frame is tracked and
     keyframes come at most every 0.3 s of camera time once the map has 5; most of the ATE
