@@ -2,16 +2,20 @@
 
 Each subcommand has a ``_add_<name>(sub)`` function that declares its arguments and binds
 a handler; the handler parses nothing itself and calls a typed function in the package.
-User errors (:class:`OrbslamError`) print one line on stderr and exit with status 2; a
-stage that failed (:class:`StageError`: a worker thread, a child process) with status 4;
-Ctrl-C exits with status 130. ``run`` has its own statuses for each way a run can end
-(``orbslam-hgcn run --help``), and writes its results whichever it is.
+User errors (:class:`OrbslamError`) print one line on stderr and exit with status 2, found
+before any work (arguments, inputs, the output folder); a stage that failed
+(:class:`StageError`: a worker thread, a child process) with status 4; Ctrl-C exits with
+status 130 and SIGTERM with 143, for every command, keeping the results made so far where
+the command has results. ``run`` has its own statuses for each way a run can end
+(``orbslam-hgcn run --help``), and writes its results whichever it is; ``compare``,
+``demo`` and ``sweep`` exit with 1 when a run failed.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from collections.abc import Callable, Sequence
 
@@ -52,6 +56,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    # SIGTERM ends every command as Ctrl-C does (run, compare, sweep, demo keep their results).
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return int(args.func(args) or 0)
     except StageError as exc:  # its message may carry a child process's traceback: one line
@@ -61,9 +67,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OrbslamError as exc:
         print(f"orbslam-hgcn {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except Terminated:
+        print(f"orbslam-hgcn {args.command}: terminated (SIGTERM)", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print(f"orbslam-hgcn {args.command}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
+def _interrupted_status(terminated: bool) -> int:
+    """Exit status of a command that stopped on a signal and kept its results."""
+    return 143 if terminated else 130
 
 
 # --- Subcommands ------------------------------------------------------------------------
@@ -100,15 +120,16 @@ def _run_eval(args: argparse.Namespace) -> int:
 
     from orbslam_hgcn.evaluation.ate import evaluate
     from orbslam_hgcn.evaluation.report import format_table, write_report
+    from orbslam_hgcn.pipeline.results import check_output_folder
     from orbslam_hgcn.trajectory import read_tum
 
     gt_path, est_path = Path(args.gt), Path(args.est)
+    out = check_output_folder(args.out if args.out else est_path.resolve().parent)
     result = evaluate(
         read_tum(gt_path), read_tum(est_path), align=args.align, max_diff=args.max_diff,
         delta=args.delta, delta_unit=args.delta_unit, t_offset=args.t_offset,
         gt_name=str(gt_path), est_name=str(est_path),
     )
-    out = Path(args.out) if args.out else est_path.resolve().parent
     paths = write_report(result, out, plot=not args.no_plot)
     print(format_table(result))
     for path in paths.values():
@@ -166,8 +187,13 @@ def _run_lcd(args: argparse.Namespace) -> int:
     import dataclasses
 
     from orbslam_hgcn.config import FabmapConfig, load_yaml, section_from_yaml
+    from orbslam_hgcn.errors import ConfigError
+    from orbslam_hgcn.pipeline.results import check_output_folder
     from orbslam_hgcn.placerec import lcd
 
+    check_output_folder(args.out)
+    if args.n_features < 1:
+        raise ConfigError(f"--n-features must be at least 1, found {args.n_features}")
     cfg = FabmapConfig()
     if args.config:
         cfg = section_from_yaml(FabmapConfig, load_yaml(args.config), args.config, "fabmap")
@@ -305,8 +331,10 @@ def _run_synth(args: argparse.Namespace) -> int:
         "repeated_texture": args.repeated_texture, "texel_scale": args.texel_scale, "loop_gt": args.loop_gt,
         "depth": args.depth,
     }
+    from orbslam_hgcn.pipeline.results import check_output_folder
+
     options = synth_options(args.preset, **{k: v for k, v in given.items() if v is not None})
-    out = render_sequence(args.out, options, force=args.force)
+    out = render_sequence(check_output_folder(args.out), options, force=args.force)
     print(out)
     return 0
 
@@ -374,27 +402,16 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run_run)
 
 
-def _terminate(signum: int, frame: object) -> None:
-    raise Terminated()
-
-
 def _run_run(args: argparse.Namespace) -> int:
-    import signal
-
     from orbslam_hgcn.pipeline.run import format_report, run_dataset
 
-    # SIGTERM ends a run as Ctrl-C does: the results so far are written.
-    previous = signal.signal(signal.SIGTERM, _terminate)
-    try:
-        report = run_dataset(
-            args.path, args.out, kind=args.dataset, config=args.config, max_frames=args.max_frames,
-            loop_closing=not args.no_loop, progress=not args.no_progress, vocab=args.vocab, rerun=args.rerun,
-            load_map=args.load_map, save_map=args.save_map, localization=args.localization,
-            sequential=args.sequential, speed=args.speed, on_bad_frame=args.on_bad_frame,
-            drop_late=args.drop_late,
-        )
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    report = run_dataset(
+        args.path, args.out, kind=args.dataset, config=args.config, max_frames=args.max_frames,
+        loop_closing=not args.no_loop, progress=not args.no_progress, vocab=args.vocab, rerun=args.rerun,
+        load_map=args.load_map, save_map=args.save_map, localization=args.localization,
+        sequential=args.sequential, speed=args.speed, on_bad_frame=args.on_bad_frame,
+        drop_late=args.drop_late,
+    )
     for line in format_report(report):
         print(line)
     for path in report.paths.values():
@@ -487,11 +504,13 @@ def _run_vocab_info(args: argparse.Namespace) -> int:
 
 
 def _run_vocab_export(args: argparse.Namespace) -> int:
+    from orbslam_hgcn.pipeline.results import check_output_file
     from orbslam_hgcn.vocabulary import load_vocabulary
     from orbslam_hgcn.vocabulary.dbow2 import write_dbow2_text
 
+    out = check_output_file(args.out, "--out")
     vocab = load_vocabulary(args.file)
-    out = write_dbow2_text(vocab, args.out)
+    out = write_dbow2_text(vocab, out)
     print(f"wrote {out} ({args.format}: {vocab.n_words} words, {len(vocab.parent)} nodes)")
     return 0
 
@@ -534,8 +553,8 @@ def _run_compare(args: argparse.Namespace) -> int:
     for path in comp.paths.values():
         print(f"wrote {path}")
     if comp.interrupted:
-        return 130
-    return 1 if any(not r.ok for r in comp.runs) else 0
+        return _interrupted_status(comp.terminated)
+    return 1 if any(not r.counts for r in comp.runs) else 0
 
 
 @subcommand
@@ -571,8 +590,8 @@ def _run_demo(args: argparse.Namespace) -> int:
                     progress=not args.no_progress, sequential=args.sequential,
                     speed=args.speed, force=args.force)
     if comp.interrupted:
-        return 130
-    return 1 if any(not r.ok for r in comp.runs) else 0
+        return _interrupted_status(comp.terminated)
+    return 1 if any(not r.counts for r in comp.runs) else 0
 
 
 @subcommand
@@ -605,5 +624,5 @@ def _run_sweep(args: argparse.Namespace) -> int:
     for path in sw.paths.values():
         print(f"wrote {path}")
     if sw.interrupted:
-        return 130
+        return _interrupted_status(sw.terminated)
     return 1 if any(not r.outcome.counts for r in sw.runs) else 0

@@ -430,6 +430,11 @@ class TreeTrainConfig:
     max_iters: int = 10  # Lloyd iterations of k-medians per level
     seed: int = 0  # k-means++ seeding
 
+    def __post_init__(self) -> None:
+        if self.k < 2 or self.levels < 1 or self.max_iters < 1:
+            raise ConfigError(f"vocab_tree: k >= 2, levels >= 1 and max_iters >= 1 are required, found k = {self.k}, "
+                              f"levels = {self.levels}, max_iters = {self.max_iters}")
+
 
 @dataclasses.dataclass(frozen=True)
 class HgcnTrainConfig:
@@ -466,8 +471,10 @@ class HgcnTrainConfig:
     seed: int = 0  # sampling, initialisation and k-means seeds
 
     def __post_init__(self) -> None:
-        if self.n_words < 2 or self.pca_dim < 1 or self.knn < 1 or self.hidden_dim < 1:
-            raise ConfigError("hgcn: n_words >= 2, pca_dim >= 1, knn >= 1 and hidden_dim >= 1 are required")
+        if self.n_words < 2 or self.pca_dim < 1 or self.knn < 1 or self.hidden_dim < 1 or self.epochs < 1:
+            raise ConfigError("hgcn: n_words >= 2, pca_dim >= 1, knn >= 1, hidden_dim >= 1 and epochs >= 1 are "
+                              f"required, found {self.n_words}, {self.pca_dim}, {self.knn}, {self.hidden_dim}, "
+                              f"{self.epochs}")
         if not 0.0 < self.label_fraction <= 1.0:
             raise ConfigError(f"hgcn.label_fraction: must be in (0, 1], found {self.label_fraction!r}")
         if self.activation not in ("relu", "leaky_relu", "elu", "tanh"):

@@ -35,25 +35,20 @@ def _md_rows(md: str, first: str) -> list[list[str]]:
 def test_compare_figures_match_each_run(cache, tmp_path, capsys):
     seq = cache / f"loop_{FRAMES}frames"
     out = tmp_path / "cmp"
-    missing = tmp_path / "no_such_vocab.npz"
-    code = main(["compare", str(seq), "--dataset", "tum", "--runs", "2", "--vocabs", "orb", "hgcn", str(missing),
+    code = main(["compare", str(seq), "--dataset", "tum", "--runs", "2", "--vocabs", "orb", "hgcn",
                  "--out", str(out), "--max-frames", str(FRAMES), "--sequential", "--no-progress"])
     printed = capsys.readouterr().out
-    assert code == 1  # one vocabulary failed; the others ran
+    assert code == 0  # every run counts (a missing vocabulary is refused up front: test_cli_errors.py)
     for name in ("compare.md", "compare.json", "compare_ate.png"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0
     data = json.loads((out / "compare.json").read_text())
     md = (out / "compare.md").read_text()
     assert md in printed
     runs = data["runs"]
-    assert [(r["vocab"], r["run"]) for r in runs] == [
-        ("orb", 1), ("orb", 2), ("hgcn", 1), ("hgcn", 2), (str(missing), 1), (str(missing), 2)]
+    assert [(r["vocab"], r["run"]) for r in runs] == [("orb", 1), ("orb", 2), ("hgcn", 1), ("hgcn", 2)]
     per_run = _md_rows(md, "vocabulary | run")
     assert len(per_run) == len(runs)
     for r, row in zip(runs, per_run):
-        if r["vocab"] == str(missing):
-            assert not r["ok"] and "no_such_vocab.npz" in r["error"] and row[7].startswith("X failed")
-            continue
         stats = json.loads((out / r["vocab"] / f"run{r['run']}" / "stats.json").read_text())
         rmse = stats["ate_sim3"]["keyframes"]["rmse_m"]
         assert r["ok"] and r["ate_rmse_m"] == rmse
@@ -66,8 +61,8 @@ def test_compare_figures_match_each_run(cache, tmp_path, capsys):
         assert row == [r["vocab"], str(r["run"]), f"{1000 * rmse:.2f}", str(r["loops_closed"]), str(FRAMES),
                        str(r["frames_lost"]), f"{r['fps']:.2f}", "ok", f"{100 * tracked / FRAMES:.1f}%", "0"]
     summary = _md_rows(md, "vocabulary | runs ok")
-    assert [row[0] for row in summary] == ["orb", "hgcn", str(missing)]
-    for row in summary[:2]:
+    assert [row[0] for row in summary] == ["orb", "hgcn"]
+    for row in summary:
         v = row[0]
         ates = [json.loads((out / v / f"run{i}" / "stats.json").read_text())["ate_sim3"]["keyframes"]["rmse_m"]
                 for i in (1, 2)]
@@ -77,8 +72,6 @@ def test_compare_figures_match_each_run(cache, tmp_path, capsys):
         assert (s["ate_rmse_m"]["min"], s["ate_rmse_m"]["max"]) == (min(ates), max(ates))
         assert ates[0] == ates[1]  # stages in order: repeated runs are identical
         assert row[1:5] == ["2/2"] + [f"{1000 * x:.2f}" for x in (np.median(ates), min(ates), max(ates))]
-    assert summary[2][1] == "0/2" and summary[2][2] == "n/a"
-    assert data["summary"][str(missing)]["failures"][0]["run"] == 1
 
 
 def test_demo_prints_hgcn_then_orb_and_reuses_the_cache(cache, tmp_path, capsys):
@@ -96,8 +89,9 @@ def test_demo_prints_hgcn_then_orb_and_reuses_the_cache(cache, tmp_path, capsys)
     assert [r["vocab"] for r in data["runs"]] == ["hgcn", "orb"] and all(r["ok"] for r in data["runs"])
     hgcn = json.loads((out / "hgcn" / "run1" / "stats.json").read_text())
     assert f"hgcn run 1: ATE {1000 * hgcn['ate_sim3']['keyframes']['rmse_m']:.2f} mm" in printed
-    # Measured on this 30-frame stretch: about 1 mm keyframe ATE with either vocabulary.
-    assert hgcn["ate_sim3"]["keyframes"]["rmse_m"] < 0.01
+    # Measured on this 30-frame stretch, threaded: 0.6-2.0 mm keyframe ATE with the HGCN
+    # vocabulary over 4 runs on a loaded 2-core machine; the bound is 2 mm above the worst.
+    assert hgcn["ate_sim3"]["keyframes"]["rmse_m"] < 0.004
     assert (out / "demo.rrd").is_file() and (out / "demo.rrd").stat().st_size > 0
 
 
@@ -119,7 +113,8 @@ def test_compare_marks_runs_with_untracked_frames_or_resets_as_failed(tmp_path):
         (out / "stats.json").write_text(json.dumps(stats))
         return SimpleNamespace(paths={"stats": out / "stats.json"})
 
-    comp = run_comparison(tmp_path / "seq", tmp_path / "out", runs=4, vocabs=["orb"], run_fn=fake_run)
+    (tmp_path / "seq").mkdir()
+    comp = run_comparison(tmp_path / "seq", tmp_path / "out", kind="tum", runs=4, vocabs=["orb"], run_fn=fake_run)
     failed = {r.run: r.failed for r in comp.runs}
     assert failed[1] is None and failed[4] is None
     assert "15 of 100 frames without a pose" in failed[2] and "1 map reset" in failed[3]

@@ -46,10 +46,12 @@ def test_shipped_config_matches_published_calibration(name):
     assert cam.name == name
 
 
-def test_euroc_config_agrees_with_the_sample_sensor_yaml(euroc_sample):
+def test_euroc_config_agrees_with_the_sample_sensor_yaml(euroc_layout):
+    """The shipped euroc_cam0 camera is EuRoC's cam0 calibration as the reader reads it from
+    a sensor.yaml (the real sample's, or the stand-in's copy of the published one)."""
     from orbslam_hgcn.datasets.euroc import read_sensor_yaml
 
-    cam, _ = read_sensor_yaml(euroc_sample / "mav0" / "cam0" / "sensor.yaml")
+    cam, _ = read_sensor_yaml(euroc_layout / "mav0" / "cam0" / "sensor.yaml")
     assert cam == load_camera("euroc_cam0")
 
 
@@ -107,18 +109,35 @@ def test_shipped_configs_carry_orb_slams_settings(name, features):
     assert (c.orb.ini_th_fast, c.orb.min_th_fast) == (20.0, 7.0)
 
 
-def test_dataset_settings_follow_the_datasets_camera(kitti_sample, tum_sample, euroc_sample):
+def _kitti_00_layout(tmp_path):
+    """A KITTI odometry folder with sequence 00's calib.txt (its P0, P1) and two blank 1241x376
+    frames: what a run reads to tell the camera."""
+    import cv2
+    import numpy as np
+
+    folder = tmp_path / "sequences" / "00"
+    (folder / "image_0").mkdir(parents=True)
+    for i in range(2):
+        cv2.imwrite(str(folder / "image_0" / f"{i:06d}.png"), np.full((376, 1241), 128, np.uint8))
+    (folder / "times.txt").write_text("0.000000e+00\n1.036000e-01\n")
+    p0 = "7.188560e+02 0 6.071928e+02 0 0 7.188560e+02 1.852157e+02 0 0 0 1 0"
+    p1 = "7.188560e+02 0 6.071928e+02 -3.861448e+02 0 7.188560e+02 1.852157e+02 0 0 0 1 0"
+    (folder / "calib.txt").write_text(f"P0: {p0}\nP1: {p1}\n")
+    return folder
+
+
+def test_dataset_settings_follow_the_datasets_camera(tmp_path, tum_layout, euroc_layout):
     """A run picks the settings of the shipped config whose camera the dataset has (KITTI's
     calib.txt included), or of the dataset kind's family; none for an unknown camera."""
     from orbslam_hgcn.config import dataset_settings
     from orbslam_hgcn.datasets import open_sequence
     from orbslam_hgcn.geometry.camera import PinholeCamera
 
-    path, settings = dataset_settings(open_sequence("kitti", kitti_sample).camera, "kitti")
+    path, settings = dataset_settings(open_sequence("kitti", _kitti_00_layout(tmp_path)).camera, "kitti")
     assert path.stem == "kitti_00-02" and settings["orb"]["n_features"] == 2000
-    path, _ = dataset_settings(open_sequence("tum", tum_sample).camera, "tum")
+    path, _ = dataset_settings(open_sequence("tum", tum_layout).camera, "tum")
     assert path.stem == "tum_fr3"
-    path, settings = dataset_settings(open_sequence("euroc", euroc_sample).camera, "euroc")
+    path, settings = dataset_settings(open_sequence("euroc", euroc_layout).camera, "euroc")
     assert path.stem == "euroc_cam0" and settings["orb"]["n_features"] == 1000
     odd = PinholeCamera(fx=700.0, fy=700.0, cx=600.0, cy=180.0, width=1200, height=360)
     path, settings = dataset_settings(odd, "kitti")  # another KITTI-like camera: the family's settings

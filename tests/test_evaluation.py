@@ -233,6 +233,24 @@ def test_box_plot_writes_an_image(tmp_path):
         assert np.asarray(im.convert("L"), dtype=np.float64).std() > 10.0
 
 
+def test_box_plot_axis_starts_at_zero_and_one_run_says_it_cannot_rank(tmp_path, monkeypatch):
+    """1.79 mm against 1.91 mm, one run each (the demo's case): the axis starts at zero, and
+    the plot says that one value per group shows no spread; with several runs, no such note."""
+    import orbslam_hgcn.evaluation.plots as plots
+
+    figs = []
+    save = plots._save
+    monkeypatch.setattr(plots, "_save", lambda fig, path: (figs.append(fig), save(fig, path))[1])
+    box_plot({"hgcn": [1.79], "orb": [1.91]}, tmp_path / "one.png", ylabel="mm")
+    box_plot({"hgcn": [1.79, 1.85], "orb": [1.91, 1.88]}, tmp_path / "two.png", ylabel="mm")
+    (one,), (two,) = (f.axes for f in figs)
+    for ax in (one, two):
+        low, high = ax.get_ylim()
+        assert low == 0.0 and 1.91 < high < 2.2
+    assert any("cannot rank" in t.get_text() for t in one.texts)
+    assert not any("cannot rank" in t.get_text() for t in two.texts)
+
+
 def test_principal_axes_pick_the_plane_of_largest_extent():
     t = np.linspace(0, 2 * np.pi, 100)
     pts = np.stack([3.0 * np.cos(t), 0.05 * np.sin(5 * t), -1.0 * np.sin(t)], axis=1)

@@ -15,8 +15,10 @@ from orbslam_hgcn.features.rbrief import opencv_rbrief
 TUM_FRAME = "rgb/1341847980.722988.png"
 
 
-def _tum_image(tum_sample, name=TUM_FRAME):
-    img = cv2.imread(str(tum_sample / name), cv2.IMREAD_GRAYSCALE)
+def _tum_image(folder):
+    """TUM_FRAME of the real sample, or the sixth frame of the rendered stand-in."""
+    path = folder / TUM_FRAME if (folder / TUM_FRAME).is_file() else sorted((folder / "rgb").glob("*.png"))[5]
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     assert img is not None
     return img
 
@@ -191,13 +193,14 @@ def _opencv_cell_fast(img, level, maps, hi=20, lo_th=7, edge=19):
 
 
 @pytest.mark.parametrize("which", ["tum", "euroc", "blobs"])
-def test_compiled_fast_equals_opencv_on_orbslam_windows(which, tum_sample, euroc_sample, extractor):
+def test_compiled_fast_equals_opencv_on_orbslam_windows(which, request, extractor):
     # The compiled detector must find cv2.FAST's corners, scores and order on the same
     # windows, on every level: a real TUM frame (many cells fall back to the low
     # threshold), a EuRoC frame (752 px wide) and a synthetic image with both contrasts.
     if which == "tum":
-        img = _tum_image(tum_sample)
+        img = _tum_image(request.getfixturevalue("tum_sample"))
     elif which == "euroc":
+        euroc_sample = request.getfixturevalue("euroc_sample")
         img = cv2.imread(str(sorted((euroc_sample / "mav0" / "cam0" / "data").glob("*.png"))[40]), 0)
     else:
         rng = np.random.default_rng(5)
@@ -251,10 +254,10 @@ def test_orb_on_tum_image_count_spread_octaves(tum_sample, extractor):
     assert cv < 0.6 * cv_cv2
 
 
-def test_level_threads_give_the_same_keypoints(tum_sample):
+def test_level_threads_give_the_same_keypoints(tum_layout):
     # The pyramid levels may be searched and described on several threads; the result must
     # be that of one thread, element for element.
-    img = _tum_image(tum_sample)
+    img = _tum_image(tum_layout)
     cam = load_camera("tum_fr3")
     one = ORBExtractor(ORBConfig(threads=1)).extract(img, cam)
     three = ORBExtractor(ORBConfig(threads=3)).extract(img, cam)
@@ -263,8 +266,8 @@ def test_level_threads_give_the_same_keypoints(tum_sample):
         np.testing.assert_array_equal(getattr(three, name), getattr(one, name))
 
 
-def test_orb_descriptors_equal_opencv_for_same_keypoints(tum_sample, extractor):
-    img = _tum_image(tum_sample)
+def test_orb_descriptors_equal_opencv_for_same_keypoints(tum_layout, extractor):
+    img = _tum_image(tum_layout)
     kps = extractor.extract(img)
     levels = build_pyramid(img, 1.2, 8)
     orb = cv2.ORB_create(nfeatures=1000, scaleFactor=1.2, nlevels=1, edgeThreshold=19, patchSize=31)
@@ -285,8 +288,8 @@ def test_orb_descriptors_equal_opencv_for_same_keypoints(tum_sample, extractor):
     np.testing.assert_array_equal(desc0, kps.desc[idx])
 
 
-def test_orientation_equals_loop_reference(tum_sample):
-    img = _tum_image(tum_sample)
+def test_orientation_equals_loop_reference(tum_layout):
+    img = _tum_image(tum_layout)
     rng = np.random.default_rng(3)
     x = rng.integers(20, 620, 25)
     y = rng.integers(20, 460, 25)
@@ -307,9 +310,9 @@ def test_orientation_equals_loop_reference(tum_sample):
     assert np.all(du**2 + dv**2 <= 15**2 + 15)
 
 
-def test_euroc_keypoints_are_undistorted(euroc_sample, extractor):
+def test_euroc_keypoints_are_undistorted(euroc_layout, extractor):
     cam = load_camera("euroc_cam0")
-    path = sorted((euroc_sample / "mav0" / "cam0" / "data").glob("*.png"))[0]
+    path = sorted((euroc_layout / "mav0" / "cam0" / "data").glob("*.png"))[0]
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     kps = extractor.extract(img, cam)
     assert abs(len(kps) - 1000) <= 50
@@ -317,7 +320,7 @@ def test_euroc_keypoints_are_undistorted(euroc_sample, extractor):
     assert np.max(np.linalg.norm(kps.uv - kps.uv_raw, axis=1)) > 5.0
 
 
-def test_compiled_rbrief_equals_opencv_at_any_orientation(tum_sample):
+def test_compiled_rbrief_equals_opencv_at_any_orientation(tum_layout):
     # The test pattern is read off OpenCV, and the compiled descriptor must then equal
     # cv2.ORB.compute bit for bit: random keypoints, random orientations, real images.
     compiled = opencv_rbrief(31, 19)
@@ -327,7 +330,7 @@ def test_compiled_rbrief_equals_opencv_at_any_orientation(tum_sample):
     assert np.all(np.abs(pattern) <= 15) and len({tuple(p) for p in pattern.reshape(256, 4).tolist()}) == 256
     orb = cv2.ORB_create(nfeatures=1000, nlevels=1, edgeThreshold=19, patchSize=31)
     rng = np.random.default_rng(7)
-    for path in sorted((tum_sample / "rgb").glob("*.png"))[:6]:
+    for path in sorted((tum_layout / "rgb").glob("*.png"))[:6]:
         img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         x = rng.integers(19, img.shape[1] - 19, 400)
         y = rng.integers(19, img.shape[0] - 19, 400)
@@ -340,12 +343,12 @@ def test_compiled_rbrief_equals_opencv_at_any_orientation(tum_sample):
         compiled.describe(img, np.array([compiled.reach - 1]), np.array([100]), np.zeros(1, np.float32))
 
 
-def test_extractor_falls_back_to_opencv_descriptors(tum_sample, extractor, monkeypatch):
+def test_extractor_falls_back_to_opencv_descriptors(tum_layout, extractor, monkeypatch):
     # Where the pattern cannot be read off OpenCV, cv2.ORB.compute describes, with the same result.
     monkeypatch.setattr("orbslam_hgcn.features.orb.opencv_rbrief", lambda *args: None)
     fallback = ORBExtractor()
     assert fallback._rbrief is None and extractor._rbrief is not None
-    img = _tum_image(tum_sample)
+    img = _tum_image(tum_layout)
     a, b = fallback.extract(img), extractor.extract(img)
     for name in ("uv_raw", "octave", "angle", "desc"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))

@@ -2,9 +2,13 @@
 virtual environment, runs ``orbslam-hgcn run --config tum_fr3`` (a shipped camera, package
 data) on a short render, from a folder outside the checkout.
 
-The fresh environment gets the wheel only; its dependencies (numpy, OpenCV, gtsam, torch,
-...) are the test environment's, reached through a ``.pth`` file, so nothing is downloaded
-and the test takes seconds. The compiled kernels' numba cache of the checkout is copied
+For that run the fresh environment gets the wheel only; its dependencies (numpy, OpenCV,
+gtsam, torch, ...) are the test environment's, reached through a ``.pth`` file, so nothing
+is downloaded and the test takes seconds. The dependencies the wheel declares are checked
+apart: pip, in another fresh environment, resolves the wheel against the package index
+(``--dry-run --report``: every version chosen, nothing installed; torch pinned to 2.13.0, the
+CPU build, as a full resolution would otherwise pick the CUDA build and its gigabytes), and
+every third-party module the package imports must come from a declared dependency. The compiled kernels' numba cache of the checkout is copied
 beside the installed modules when it is there (the same sources), so that the run loads
 them instead of compiling them again (about 30 s on a 2-core machine).
 """
@@ -121,3 +125,66 @@ def test_the_wheel_installs_and_runs_with_a_shipped_camera(synth_replay_100, tmp
     stats = json.loads((work / "out" / "stats.json").read_text())
     assert Path(stats["settings"]["config"]).is_relative_to(site / "orbslam_hgcn" / "configs")
     assert stats["complete"] is True and stats["frames"]["frames"] == 40 and stats["frames"]["tracked"] > 0
+
+
+# Third-party modules the package imports only behind a guard, from its optional extras.
+OPTIONAL_MODULES = {"ray": "cluster", "pyorbslam3": "peer"}
+
+
+def _imported_modules() -> set[str]:
+    """Top-level names of the third-party modules the package's sources import."""
+    import ast
+
+    names: set[str] = set()
+    for path in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                names.update(a.name.split(".")[0] for a in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names.add(node.module.split(".")[0])
+    return {n for n in names if n not in sys.stdlib_module_names and n not in ("orbslam_hgcn", "__future__")}
+
+
+def _canonical(name: str) -> str:
+    import re
+
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+@pytest.mark.slow
+def test_the_wheels_declared_dependencies_resolve_and_cover_its_imports(tmp_path):
+    import tomllib
+
+    from packaging.requirements import Requirement
+
+    wheel = _build_wheel(tmp_path)
+    declared = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))["project"]["dependencies"]
+    venv = tmp_path / "resolve"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
+    pins = tmp_path / "pins.txt"
+    pins.write_text("torch==2.13.0\n")
+    report = tmp_path / "report.json"
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    res = subprocess.run([str(venv / "bin" / "python"), "-m", "pip", "install", "-q", "--dry-run", "--ignore-installed",
+                          "--report", str(report), "-c", str(pins), str(wheel)],
+                         capture_output=True, text=True, timeout=900, env=env)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    install = {_canonical(i["metadata"]["name"]): i["metadata"] for i in json.loads(report.read_text())["install"]}
+    # The wheel carries pyproject's dependencies, and each resolves to a version that satisfies it.
+    own = [Requirement(r) for r in install["orbslam-hgcn"]["requires_dist"] if "extra ==" not in r]
+    assert sorted(str(r) for r in own) == sorted(str(Requirement(d)) for d in declared)
+    for req in own:
+        got = install[_canonical(req.name)]["version"]
+        assert req.specifier.contains(got, prereleases=True), (req, got)
+    assert install["torch"]["version"].startswith("2.13.0")
+    assert not [n for n in install if n.startswith("nvidia-")]  # the CPU build of torch
+    # Every module the sources import comes from a declared dependency (or an optional extra).
+    dists = importlib.metadata.packages_distributions()
+    missing = {}
+    for module in sorted(_imported_modules()):
+        if module in OPTIONAL_MODULES:
+            continue
+        owners = {_canonical(d) for d in dists.get(module, [])}
+        if not owners & set(install):
+            missing[module] = sorted(owners) or "no installed distribution"
+    assert not missing, f"imported but not declared in pyproject's dependencies: {missing}"

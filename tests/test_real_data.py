@@ -6,11 +6,13 @@ KITTI odometry: Geiger, Lenz and Urtasun, CVPR 2012 (CC BY-NC-SA 3.0); TUM RGB-D
 al., IROS 2012 (CC BY 4.0); EuRoC MAV: Burri et al., IJRR 2016 (ASL, ETH Zurich).
 """
 
+import json
 import time
 
 import numpy as np
 import pytest
 
+from orbslam_hgcn.cli import main
 from orbslam_hgcn.config import ORBConfig, dataset_settings
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.datasets.base import Sequence
@@ -88,24 +90,57 @@ def test_initialisation_on_real_hand_held_frames(tum_sample):
     assert angle_between_deg(T21[:3, 3], G21[:3, 3]) < 3.0
 
 
-def test_short_real_kitti_run_as_a_user_runs_it(kitti_sample, tmp_path):
-    """The first 60 KITTI frames (52 m) through ``run`` without --config: KITTI's settings
-    are picked from calib.txt, the map is made on frame 1 or 2, every frame is tracked and
-    keyframes come at most every 0.3 s of camera time once the map has 5 (22-23 made here,
-    where the old rule made one per frame). The keyframe ATE was 21-23 cm here, most of it
-    from the first 10 frames (frames 40-99 alone: 5 cm, next test)."""
-    r = run_dataset(kitti_sample, tmp_path / "run", kind="kitti", max_frames=60, sequential=True, progress=False)
-    s = r.stats
+# Measured (sequential, loop closing on, HGCN vocabulary): 22 keyframes (22-23 without loop
+# closing), keyframe ATE 23.6 cm, camera ATE 18.3 cm; the sequential run is reproducible. The
+# bounds leave 2 keyframes and 3 cm of ATE beyond those, for other BLAS and compiler builds.
+KITTI_60_KEYFRAMES = (20, 25)
+KITTI_60_ATE_M = 0.27
+
+
+def test_short_real_kitti_run_as_a_user_runs_it(kitti_sample, tmp_path, capsys):
+    """The first 60 KITTI frames (52 m) through ``orbslam-hgcn run SEQ --out OUT``, first with
+    the command's defaults (stages in worker threads, frames taken at the camera's 10 Hz,
+    loop closing on with the shipped HGCN vocabulary), then with ``--sequential``; KITTI's
+    settings are picked from calib.txt both times, and the ATE printed is stats.json's.
+
+    A paced threaded run drops the frames it falls behind on, so how many it tracks depends
+    on the machine's load (on a 2-core machine at load average 20 it dropped
+    57 of 60): the threaded run is held to its accounting and wiring, the sequential one to
+    the figures. Sequential: the map is made on frame 1 or 2, every frame is tracked and
+    keyframes come at most every 0.3 s of camera time once the map has 5; most of the ATE
+    comes from the first 10 frames (frames 40-99 alone: 5 cm, next test)."""
+    out = tmp_path / "threaded"
+    assert main(["run", str(kitti_sample), "--out", str(out), "--max-frames", "60", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    s = json.loads((out / "stats.json").read_text())
+    assert s["threads"]["sequential"] is False and s["threads"]["speed"] == 1.0 and s["complete"] is True
     assert s["settings"]["dataset"] == "kitti_00-02" and s["settings"]["orb_features"] == 2000
+    assert "HGCNVocabulary" in s["vocabulary"] and "loops" in s["loop_closing"]
+    f = s["frames"]
+    assert f["frames"] == 60 == sum(f[k] for k in ("tracked", "lost", "not_initialized", "reset", "dropped",
+                                                    "unreadable", "other_maps"))
+    for name, a in s["ate_sim3"].items():
+        assert ("rmse_m" in a) == (f"ATE Sim(3) ({name}," in printed)
+        if "rmse_m" in a:
+            assert f"rmse {100 * a['rmse_m']:.2f} cm" in printed
+
+    out = tmp_path / "sequential"
+    assert main(["run", str(kitti_sample), "--out", str(out), "--max-frames", "60", "--no-progress",
+                 "--sequential"]) == 0
+    printed = capsys.readouterr().out
+    s = json.loads((out / "stats.json").read_text())
+    assert s["settings"]["dataset"] == "kitti_00-02" and "HGCNVocabulary" in s["vocabulary"]
     init = [e["frame"] for e in s["events"] if e["event"] == "initialized"]
     assert init and init[0] <= 2
     assert s["frames"]["tracked"] == 60 and s["map_resets"] == 0
-    assert 12 <= s["keyframes"] <= 30
-    assert r.ate["keyframes"]["rmse_m"] < 0.35 and r.ate["camera"]["rmse_m"] < 0.35
+    assert KITTI_60_KEYFRAMES[0] <= s["keyframes"] <= KITTI_60_KEYFRAMES[1]
+    ate = s["ate_sim3"]
+    assert f"rmse {100 * ate['keyframes']['rmse_m']:.2f} cm" in printed
+    assert ate["keyframes"]["rmse_m"] < KITTI_60_ATE_M and ate["camera"]["rmse_m"] < KITTI_60_ATE_M
 
 
 def test_real_kitti_frames_40_to_99_against_ground_truth(kitti_sample):
-    """60 frames of straight driving from frame 40, sequential: keyframe ATE 5.0 cm here."""
+    """60 frames of straight driving from frame 40, sequential: keyframe ATE 5.04 cm here."""
     seq = open_sequence("kitti", kitti_sample)
     path, settings = dataset_settings(seq.camera, "kitti")
     system = System(seq.camera, Configs.from_layers([(settings, path)]), sequential=True)
@@ -113,7 +148,7 @@ def test_real_kitti_frames_40_to_99_against_ground_truth(kitti_sample):
     stats = system.stats()
     assert stats["frames"]["tracked"] >= 58 and stats["map_resets"] == 0
     ate = trajectory_ate(seq.ground_truth, system.keyframe_trajectory())
-    assert ate["pairs"] >= 12 and ate["rmse_m"] < 0.08, ate
+    assert ate["pairs"] >= 12 and ate["rmse_m"] < 0.06, ate  # 5.04 cm measured; 1 cm margin
     assert check_invariants(system.map) == []
 
 

@@ -299,8 +299,8 @@ def test_compare_with_jobs_is_a_one_sequence_sweep(tmp_path, fake_run, ray_local
     seq = tmp_path / "flaky"
     seq.mkdir()
     out = tmp_path / "out"
-    code = main(["compare", str(seq), "--runs", "2", "--vocabs", "orb", "hgcn", "--out", str(out), "--jobs", "2",
-                 "--no-progress"])
+    code = main(["compare", str(seq), "--dataset", "tum", "--runs", "2", "--vocabs", "orb", "hgcn", "--out", str(out),
+                 "--jobs", "2", "--no-progress"])  # an empty folder: the fake run reads nothing
     assert code == 0
     data = json.loads((out / "compare.json").read_text())
     assert [(r["vocab"], r["run"], r["ok"]) for r in data["runs"]] == [

@@ -455,8 +455,8 @@ def test_process_solver_runs_at_lower_priority():
         assert os.getpriority(os.PRIO_PROCESS, child[0].pid) == min(os.getpriority(os.PRIO_PROCESS, 0) + 4, 19)
 
 
-def test_extraction_process_gives_the_direct_keypoints(tum_sample):
-    img = cv2.imread(str(sorted((tum_sample / "rgb").glob("*.png"))[0]), cv2.IMREAD_GRAYSCALE)
+def test_extraction_process_gives_the_direct_keypoints(tum_layout):
+    img = cv2.imread(str(sorted((tum_layout / "rgb").glob("*.png"))[0]), cv2.IMREAD_GRAYSCALE)
     cam = load_camera("tum_fr3")
     configs = {"normal": ORBConfig(), "init": ORBConfig(n_features=2000)}
     proc = ExtractionProcess(configs, cam)
@@ -505,6 +505,32 @@ def test_tracking_first_lock_lets_the_priority_waiter_in_first():
     assert order == ["tracker", "mapper"]
     with pytest.raises(RuntimeError):
         lock.release()
+
+
+def test_ctrl_c_while_waiting_for_the_lock_is_a_keyboard_interrupt():
+    """SIGINT reaches the main thread (the tracker) while it waits with priority: the wait
+    ends with KeyboardInterrupt (not an error of the lock), and the lock is left usable."""
+    import signal
+
+    lock = TrackingFirstLock()
+    holder_has_it, done = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with lock:
+            holder_has_it.set()
+            done.wait(5)
+
+    holder = threading.Thread(target=hold)
+    holder.start()
+    holder_has_it.wait(5)
+    threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT)).start()
+    with pytest.raises(KeyboardInterrupt):
+        lock.acquire_first()
+    assert lock._first_waiting == 0 and lock._owner != threading.get_ident()
+    done.set()
+    holder.join(5)
+    assert lock.acquire(timeout=1)  # free again, and takeable
+    lock.release()
 
 
 def test_ba_result_written_back_after_the_map_changed(sequential_runs):

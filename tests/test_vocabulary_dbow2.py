@@ -13,8 +13,6 @@ from orbslam_hgcn.vocabulary import dbow2, load_vocabulary
 from orbslam_hgcn.vocabulary.base import DEFAULT_FILES
 from orbslam_hgcn.vocabulary.orb_tree import TreeVocabulary
 
-needs_tum = pytest.mark.skipif(not vf.TUM_RGB.is_dir(), reason="real TUM sample not found")
-
 
 # --- a plain DBoW2 reader and descent (TemplatedVocabulary::loadFromTextFile, transform) ---
 
@@ -63,7 +61,6 @@ def exported(tmp_path_factory):
 # --- export / import round trip -------------------------------------------------------------
 
 
-@needs_tum
 def test_round_trip_gives_the_same_words_weights_and_scores(exported):
     orig, path, back = exported
     assert isinstance(back, TreeVocabulary) and back.n_words == orig.n_words > 90000
@@ -103,7 +100,6 @@ def test_exported_text_is_what_orbslam_reads(exported):
     np.testing.assert_array_equal(weights[leaf].astype(np.float32), orig.idf)
 
 
-@needs_tum
 def test_descent_matches_dbow2(exported):
     _, path, back = exported
     text = path.read_text()
@@ -315,11 +311,8 @@ def synth40(tmp_path_factory):
     about frame 22)."""
     from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 
-    gt = vf.SHARED / "tum_fr3_long_office_household_sample" / "groundtruth.txt"
-    if not gt.is_file():
-        pytest.skip(f"ground truth to replay not found at {gt}")
     out = tmp_path_factory.mktemp("synth40")
-    return render_sequence(out, SynthOptions(trajectory="replay", gt=str(gt), frames=40), progress=False)
+    return render_sequence(out, SynthOptions(trajectory="replay", gt=str(vf.REPLAY_GT), frames=40), progress=False)
 
 
 def test_cli_run_with_exported_vocabulary(exported, synth40, tmp_path, capsys):
@@ -348,10 +341,8 @@ def test_cli_malformed_file_one_line_exit_2(command, tmp_path, capsys):
     args = {
         "export": ["vocab", "export", str(bad), "--out", str(tmp_path / "o.txt")],
         "info": ["vocab", "info", str(bad)],
-        "run": ["run", str(vf.TUM_RGB.parent), "--out", str(tmp_path / "o"), "--vocab", str(bad), "--no-progress"],
+        "run": ["run", str(vf.tum_rgb().parent), "--out", str(tmp_path / "o"), "--vocab", str(bad), "--no-progress"],
     }[command]
-    if command == "run" and not vf.TUM_RGB.is_dir():
-        pytest.skip("real TUM sample not found")
     rc = main(args)
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2

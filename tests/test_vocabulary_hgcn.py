@@ -232,7 +232,6 @@ def test_runtime_assignment_reproduces_the_network_labels_on_planted_clusters():
     assert np.mean(alone == in_graph) >= 0.9
 
 
-@pytest.mark.skipif(not vf.available(), reason="real sample data not found")
 def test_trained_hgcn_vocabulary_quantiser():
     vocab = vf.small_hgcn_vocab()
     cfg = vf.SMALL_HGCN
@@ -268,7 +267,6 @@ def test_trained_hgcn_vocabulary_quantiser():
     assert meta.stats["runtime_word_agreement"] >= 0.9
 
 
-@pytest.mark.skipif(not vf.available(), reason="real sample data not found")
 def test_tracks_from_consecutive_real_frames():
     from orbslam_hgcn.vocabulary.tracks import build_tracks, match_pair
 
@@ -291,7 +289,6 @@ def test_tracks_from_consecutive_real_frames():
     assert len(pairs) == linked.sum()  # one descriptor per image in every track
 
 
-@pytest.mark.skipif(not vf.available(), reason="real sample data not found")
 def test_tracks_of_float_descriptors():
     """SIFT (float) descriptors are matched by Euclidean distance under the same rules."""
     import cv2
@@ -304,12 +301,12 @@ def test_tracks_of_float_descriptors():
         kps, desc = sift.detectAndCompute(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE), None)
         return desc.astype(np.float32), np.array([k.pt for k in kps], np.float32)
 
-    tum = sorted(vf.TUM_RGB.glob("*.png"))
+    tum = sorted(vf.tum_rgb().glob("*.png"))
     (d1, uv1), (d2, uv2) = describe(tum[4]), describe(tum[5])
     a, b = match_pair(d1, d2, uv1, uv2)
     assert len(a) > 150 and len(np.unique(a)) == len(a)
     assert np.median(np.linalg.norm(uv1[a] - uv2[b], axis=1)) < 3.0
-    de, uve = describe(sorted(vf.EUROC_RGB.glob("*.png"))[0])
+    de, uve = describe(sorted(vf.euroc_rgb().glob("*.png"))[0])
     assert len(match_pair(d1, de, uv1, uve)[0]) < 20
 
 

@@ -16,7 +16,6 @@ from orbslam_hgcn.vocabulary.flat import KMeansVocabulary
 from orbslam_hgcn.vocabulary.hgcn_vocab import HGCNVocabulary
 from orbslam_hgcn.vocabulary.orb_tree import TreeVocabulary
 
-pytestmark = pytest.mark.skipif(not vf.available(), reason="real sample data not found")
 
 KINDS = {"orb": vf.small_orb_vocab, "hgcn": vf.small_hgcn_vocab, "kmeans": vf.small_kmeans_vocab}
 
@@ -114,7 +113,7 @@ def test_interrupted_save_leaves_no_file(tmp_path, monkeypatch):
 
 def test_cli_train_info_and_interrupt(tmp_path, monkeypatch, capsys):
     out = tmp_path / "voc.npz"
-    images = str(vf.TUM_RGB)
+    images = str(vf.tum_rgb())
     assert cli.main(["vocab", "train", "--kind", "orb", "--images", images, "--max-images", "3",
                      "--levels", "2", "--out", str(out)]) == 0
     assert out.is_file() and not (tmp_path / "voc.npz.descriptors.npz").exists()
@@ -239,7 +238,7 @@ def test_config_validation(tmp_path):
         HgcnTrainConfig(label_fraction=0.0)
     bad = tmp_path / "train.yaml"
     bad.write_text("hgcn:\n  n_wrods: 100\n")
-    assert cli.main(["vocab", "train", "--kind", "hgcn", "--images", str(vf.TUM_RGB), "--out",
+    assert cli.main(["vocab", "train", "--kind", "hgcn", "--images", str(vf.tum_rgb()), "--out",
                      str(tmp_path / "x.npz"), "--config", str(bad)]) == 2
 
 
@@ -251,13 +250,13 @@ def test_image_sources(tmp_path):
 
     nested = tmp_path / "a" / "b"
     nested.mkdir(parents=True)
-    frames = sorted(vf.TUM_RGB.glob("*.png"))[:3]
+    frames = sorted(vf.tum_rgb().glob("*.png"))[:3]
     shutil.copy(frames[0], tmp_path / "a" / "x.png")
     shutil.copy(frames[1], nested / "y.png")
     src = open_image_source(tmp_path)  # a plain folder: images found recursively
     assert src.n == 2 and src.load(1).ndim == 2 and src.load(1).dtype == np.uint8
-    tum = open_image_source(vf.TUM_RGB.parent)  # a TUM sequence through the dataset reader
-    assert tum.n == len(list(vf.TUM_RGB.glob("*.png"))) and "(tum)" in tum.name
+    tum = open_image_source(vf.tum_rgb().parent)  # a TUM sequence through the dataset reader
+    assert tum.n == len(list(vf.tum_rgb().glob("*.png"))) and "(tum)" in tum.name
     # 21 images, 5 evenly spread: items 0, 5, 10, 15, 20.
     assert select_images([src, tum], 5) == [(0, 0), (1, 3), (1, 8), (1, 13), (1, 18)]
     (tmp_path / "notes.txt").write_text("x")

@@ -1,5 +1,10 @@
-"""Shared, cached test data for the vocabulary tests: ORB descriptors of the real sample
-images and two small vocabularies trained on them (trained once per test session)."""
+"""Shared, cached test data for the vocabulary tests: ORB descriptors of sample images and
+small vocabularies trained on them (trained once per test session).
+
+The images are the real samples beside the repository (TUM fr3, EuRoC) when they are there;
+without them, the synthetic stand-ins of tests/conftest.py (``stand_in``): the fr3 camera
+path replayed in the synthetic office for "tum", a drive down the synthetic street for
+"euroc", so that these tests run on any checkout."""
 
 from __future__ import annotations
 
@@ -11,14 +16,19 @@ import numpy as np
 
 from orbslam_hgcn.config import HgcnTrainConfig
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared" / "data"
-TUM_RGB = SHARED / "tum_fr3_long_office_household_sample" / "rgb"
-EUROC_RGB = SHARED / "euroc_V1_01_easy_first95" / "mav0" / "cam0" / "data"
+from conftest import REPLAY_GT, SHARED_DATA as SHARED, stand_in
+REAL_TUM_RGB = SHARED / "tum_fr3_long_office_household_sample" / "rgb"
+REAL_EUROC_RGB = SHARED / "euroc_V1_01_easy_first95" / "mav0" / "cam0" / "data"
 
 
-def available() -> bool:
-    return TUM_RGB.is_dir() and EUROC_RGB.is_dir()
+def tum_rgb() -> Path:
+    """The folder of "tum" images: the real TUM sample's rgb/, else its synthetic stand-in."""
+    return REAL_TUM_RGB if REAL_TUM_RGB.is_dir() else stand_in("tum") / "rgb"
+
+
+def euroc_rgb() -> Path:
+    """The folder of "euroc" images: the real EuRoC sample's cam0/data, else a stand-in."""
+    return REAL_EUROC_RGB if REAL_EUROC_RGB.is_dir() else stand_in("euroc") / "rgb"
 
 
 @functools.lru_cache(maxsize=None)
@@ -26,7 +36,7 @@ def keypoints(which: str, index: int):
     """ORB-SLAM keypoints (KeypointSet) of frame ``index`` of ``tum`` or ``euroc``."""
     from orbslam_hgcn.features.orb import ORBExtractor
 
-    folder = TUM_RGB if which == "tum" else EUROC_RGB
+    folder = tum_rgb() if which == "tum" else euroc_rgb()
     path = sorted(folder.glob("*.png"))[index]
     return ORBExtractor().extract(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
 

@@ -161,7 +161,9 @@ def box_plot(
 
     groups: {label: values}, drawn left to right in the mapping's order; each box shows
     median and quartiles, whiskers at 1.5 IQR, and every value as a jittered dot (the
-    jitter is seeded, so the image is reproducible).
+    jitter is seeded, so the image is reproducible). The value axis starts at zero when no
+    value is negative, so that a small difference does not fill the picture; with at most
+    one value per group the plot says that it shows no spread and cannot rank the groups.
     """
     labels = list(groups)
     data = [np.asarray(groups[k], dtype=np.float64).reshape(-1) for k in labels]
@@ -173,6 +175,13 @@ def box_plot(
         for i, d in enumerate(data, start=1):
             ax.plot(i + rng.uniform(-0.12, 0.12, size=d.size), d, "o", ms=3.5,
                     color="tab:blue", alpha=0.7)
+    values = np.concatenate(data) if data else np.zeros(0)
+    values = values[np.isfinite(values)]
+    if values.size and values.min() >= 0:
+        ax.set_ylim(0.0, 1.1 * values.max() if values.max() > 0 else 1.0)
+    if labels and max(d.size for d in data) < 2:
+        ax.text(0.5, 0.03, "one value per group: no spread shown, so this cannot rank the groups",
+                transform=ax.transAxes, ha="center", va="bottom", fontsize=8, color="0.3")
     ax.set_ylabel(ylabel)
     ax.grid(True, axis="y", color="0.9")
     if title:

@@ -30,7 +30,9 @@ from typing import Any
 import numpy as np
 
 from orbslam_hgcn.config import ThreadsConfig
-from orbslam_hgcn.errors import ConfigError, OrbslamError
+from orbslam_hgcn.datasets import detect_kind
+from orbslam_hgcn.errors import ConfigError, OrbslamError, Terminated
+from orbslam_hgcn.pipeline.results import check_output_folder
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +78,7 @@ class Comparison:
     summary: dict[str, dict[str, Any]]
     paths: dict[str, Path] = field(default_factory=dict)
     interrupted: bool = False  # a run was interrupted and the comparison stopped there
+    terminated: bool = False  # by SIGTERM rather than Ctrl-C
 
     def to_json(self) -> dict[str, Any]:
         return {"dataset": self.dataset, "summary": self.summary, "runs": [asdict(r) for r in self.runs]}
@@ -103,6 +106,30 @@ def outcome_from_stats(vocab: str, run: int, out: Path, stats: dict[str, Any]) -
         tracked=tracked, resets=resets, dropped=int(f.get("dropped", 0)),
         failed="; ".join(reasons) or None,
     )  # fmt: skip
+
+
+def check_vocabulary(v: str, base: Path, loc: str = "--vocabs") -> str:
+    """The vocabulary argument of a run: a shipped name, or an absolute file path (relative
+    ones from ``base``); a ConfigError at ``loc`` when it is neither."""
+    from orbslam_hgcn.vocabulary.base import SHIPPED
+
+    if v in SHIPPED:
+        return v
+    p = Path(v).expanduser()
+    p = p if p.is_absolute() else base / p
+    if not p.is_file():
+        raise ConfigError(f"{loc}: unknown vocabulary {v!r}: not a shipped one ({', '.join(SHIPPED)}) nor a file")
+    return str(p)
+
+
+def check_sequence_path(raw: str | Path, base: Path, loc: str = "PATH") -> Path:
+    """A sequence's path (relative ones from ``base``), which must exist; a ConfigError at
+    ``loc`` when it does not."""
+    p = Path(str(raw)).expanduser()
+    p = p if p.is_absolute() else base / p
+    if not p.exists():
+        raise ConfigError(f"{loc}: sequence path not found: {p}")
+    return p
 
 
 def _spread(values: list[float]) -> dict[str, Any]:
@@ -237,7 +264,7 @@ def _runs_on_engine(path, out, kind, config, runs, vocabs, max_frames, sequentia
     argvs = [(run_argv(Path(path).resolve(), o, v if not Path(v).is_file() else str(Path(v).resolve()), kind, config,
                        max_frames, sequential, speed), str(o)) for v, _, o in plan]
     found: dict[int, RunOutcome] = {}
-    name, threads, interrupted = Path(path).name, None, False
+    name, threads, interrupted, terminated = Path(path).name, None, False, False
     try:
         with Engine(jobs, address) as engine:
             for j, result in run_processes(argvs, engine):
@@ -252,9 +279,9 @@ def _runs_on_engine(path, out, kind, config, runs, vocabs, max_frames, sequentia
                     found[j] = RunOutcome(v, i, str(o), ok=False, error=result["error"])
                 if on_run is not None:
                     on_run(found[j])
-    except KeyboardInterrupt:
-        interrupted = True
-    return [found[j] for j in sorted(found)], name, threads, interrupted
+    except KeyboardInterrupt as exc:
+        interrupted, terminated = True, isinstance(exc, Terminated)
+    return [found[j] for j in sorted(found)], name, threads, interrupted, terminated
 
 
 def run_comparison(
@@ -297,8 +324,19 @@ def run_comparison(
         raise ConfigError(f"--runs must be at least 1, found {runs}")
     if not vocabs:
         raise ConfigError("--vocabs: give at least one vocabulary (orb, hgcn or a file)")
+    if max_frames is not None and max_frames < 1:
+        raise ConfigError(f"--max-frames must be at least 1, found {max_frames}")
+    if jobs is not None and jobs < 1:
+        raise ConfigError(f"--jobs must be at least 1, found {jobs}")
     if speed is not None:
         ThreadsConfig(speed=speed)  # a bad value is a ConfigError here, not in every run
+    # The sequence, the vocabularies and the output folder are checked as a sweep checks its
+    # manifest, before the first run.
+    check_sequence_path(path, Path.cwd())
+    if kind is None:
+        detect_kind(path)  # a folder that holds no sequence fails here, not in every run
+    vocabs = [check_vocabulary(v, Path.cwd()) for v in vocabs]
+    check_output_folder(out)
     run_fn = run_fn or run_dataset
     params = inspect.signature(run_fn).parameters
     accepts_rerun = "rerun" in params
@@ -312,12 +350,13 @@ def run_comparison(
     outcomes: list[RunOutcome] = []
     name = Path(path).name
     threads: dict[str, Any] | None = None  # how the stages ran, from the first run's stats
-    interrupted = False
+    interrupted = terminated = False
     if jobs is not None or address is not None:
         if rerun_first is not None:
             raise ConfigError("--jobs/--address make each run in its own process: no rerun recording there")
-        outcomes, name, threads, interrupted = _runs_on_engine(
-            path, out, kind, config, runs, vocabs, max_frames, sequential, speed, jobs or 1, address, on_run)
+        outcomes, name, threads, interrupted, terminated = _runs_on_engine(
+            path, out, kind, config, runs, vocabs, max_frames, sequential, speed, 1 if jobs is None else jobs, address,
+            on_run)
     for v in vocabs if jobs is None and address is None else ():
         for i in range(1, runs + 1):
             if interrupted:
@@ -340,6 +379,10 @@ def run_comparison(
                     error = f"ended early ({end.get('kind')}): {end.get('reason')}"
                     outcomes.append(RunOutcome(v, i, str(run_out), ok=False, error=error))
                     interrupted = end.get("kind") in ("interrupted", "terminated")
+                    terminated = end.get("kind") == "terminated"
+            except KeyboardInterrupt as exc:  # outside the run's own handling (setting up, between frames)
+                interrupted, terminated = True, isinstance(exc, Terminated)
+                outcomes.append(RunOutcome(v, i, str(run_out), ok=False, error="interrupted"))
             except OrbslamError as exc:  # a failed run is reported in the table; the others go on
                 log.warning("vocabulary %s, run %d failed: %s", v, i, exc)
                 outcomes.append(RunOutcome(v, i, str(run_out), ok=False, error=str(exc)))
@@ -350,7 +393,8 @@ def run_comparison(
                 on_run(outcomes[-1])
     dataset = {"path": str(path), "kind": kind or "auto", "name": name, "max_frames": max_frames, "runs": runs,
                "config": str(config) if config else None, "threads": threads}
-    comp = Comparison(dataset, outcomes, summarise(outcomes, list(vocabs)), interrupted=interrupted)
+    comp = Comparison(dataset, outcomes, summarise(outcomes, list(vocabs)), interrupted=interrupted,
+                      terminated=terminated)
     md = format_markdown(comp)
     comp.paths = {"markdown": out / "compare.md", "json": out / "compare.json", "plot": out / "compare_ate.png"}
     comp.paths["markdown"].write_text(md, encoding="utf-8")

@@ -16,8 +16,11 @@ import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from orbslam_hgcn.config import ThreadsConfig
 from orbslam_hgcn.errors import ConfigError
 from orbslam_hgcn.pipeline.compare import Comparison, RunOutcome, describe_run, format_markdown, run_comparison
+from orbslam_hgcn.pipeline.results import check_output_folder
+from orbslam_hgcn.viz.sinks import parse_rerun_arg
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +45,7 @@ def demo_sequence(
 
     if frames is not None and frames < 1:
         raise ConfigError(f"--frames must be at least 1, found {frames}")
-    root = Path(cache) if cache is not None else default_cache()
+    root = check_output_folder(Path(cache) if cache is not None else default_cache(), "--cache")
     folder = root / ("loop_default" if frames is None else f"loop_{frames}frames")
     reuse = (folder / "scene.json").is_file() and not force
     log.info("%s the demo sequence in %s", "checking" if reuse else "rendering (once)", folder)
@@ -69,7 +72,13 @@ def run_demo(
     speed: how fast threaded runs take frames, relative to the sequence's 30 Hz (None: 1).
     force: render the sequence again even when the cache holds it.
     """
-    out = Path(out)
+    if runs < 1:
+        raise ConfigError(f"--runs must be at least 1, found {runs}")
+    if speed is not None:
+        ThreadsConfig(speed=speed)  # a bad value is a ConfigError before the render
+    out = check_output_folder(out)
+    if rerun:
+        parse_rerun_arg(rerun)
     seq = demo_sequence(cache, frames, progress, force)
     echo(f"sequence: {seq}")
     tokens = ["save", str(out / "demo.rrd")] if rerun is None else list(rerun)

@@ -38,6 +38,7 @@ class TrackingFirstLock:
             def free() -> bool:
                 return self._owner is None and (first or self._first_waiting == 0)
 
+            ok = False  # stays so when the wait is interrupted (Ctrl-C in the tracker's thread)
             if not blocking:
                 ok = free()
             else:

@@ -91,11 +91,11 @@ def frame_counts(records: list[PoseRecord], m: Map, atlas: Any = None) -> dict[s
     }  # fmt: skip
 
 
-def summary_ms(values: list[float] | np.ndarray) -> dict[str, float]:
-    """Median, 95th percentile, mean and max of timings in ms (zeros when empty)."""
+def summary_ms(values: list[float] | np.ndarray) -> dict[str, float | None]:
+    """Median, 95th percentile, mean and max of timings in ms (None when there are none)."""
     v = np.asarray(values, dtype=np.float64)
     if len(v) == 0:
-        return {"count": 0, "median": 0.0, "p95": 0.0, "mean": 0.0, "max": 0.0}
+        return {"count": 0, "median": None, "p95": None, "mean": None, "max": None}
     return {
         "count": int(len(v)),
         "median": float(np.median(v)),

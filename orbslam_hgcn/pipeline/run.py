@@ -161,6 +161,8 @@ def run_dataset(
     rerun_sink = parse_rerun_arg(rerun) if rerun is not None else None
     if on_bad_frame not in ("skip", "stop"):
         raise OrbslamError(f"--on-bad-frame must be skip or stop, found {on_bad_frame!r}")
+    if max_frames is not None and max_frames < 1:
+        raise OrbslamError(f"--max-frames must be at least 1, found {max_frames}")
     out = check_output_folder(out)
     if save_map is not None:
         save_map = check_output_file(save_map, "--save-map")
@@ -282,6 +284,34 @@ def _real_time_line(rt: dict[str, Any]) -> str:
     return line
 
 
+def _timing_line(what: str, t: dict[str, Any], of: str, fmt: str) -> str:
+    """``what: median, p95, mean`` of a timing summary; says so when it holds no sample."""
+    if not t["count"]:
+        return f"{what}: no {of}, no timing"
+    return f"{what}: median {t['median']:{fmt}}, p95 {t['p95']:{fmt}}, mean {t['mean']:{fmt}}"
+
+
+def _why_no_pose(events: list[dict[str, Any]]) -> str:
+    """Why no frame has a pose in the final map, from the run's events: never initialised,
+    or initialised and then reset (with the reason the tracker gave)."""
+    inits = [e for e in events if e["event"] == "initialized"]
+    if not inits:
+        return "the map was never initialised (too little parallax or texture)"
+    parts = []
+    for e in inits:
+        kf = e.get("keyframe_frames") or []
+        made = f"frames {kf[0]} and {kf[-1]}" if len(kf) >= 2 else f"frame {e['frame']}"
+        ends = [r for r in events if r["event"] in ("reset", "new_map") and r["frame"] >= e["frame"]]
+        text = f"the map was initialised on {made}"
+        if ends:
+            r = ends[0]
+            what = "reset" if r["event"] == "reset" else "set aside for a new map"
+            text += f", then {what} at frame {r['frame']}" + (f" ({r['why']})" if r.get("why") else "")
+        parts.append(text)
+    tail = "" if events and events[-1]["event"] == "initialized" else "; it was not initialised again"
+    return "; ".join(parts) + tail
+
+
 def format_report(report: RunReport) -> list[str]:
     """Human-readable summary lines of a run."""
     s = report.stats
@@ -294,11 +324,10 @@ def format_report(report: RunReport) -> list[str]:
         f"dropped behind the camera {f.get('dropped', 0)}",
         f"keyframes {s['keyframes']}, map points {s['map_points']}, final state: {s['final_state']}",
         _real_time_line(s.get("real_time", {})),
-        "tracking ms/frame: median {median:.1f}, p95 {p95:.1f}, mean {mean:.1f}".format(**t["tracking_per_frame"])
-        + " (CPU median {median:.1f})".format(**t["tracking_cpu_per_frame"]),
-        "local mapping ms/keyframe: median {median:.0f}, p95 {p95:.0f}, mean {mean:.0f}".format(
-            **t["local_mapping_per_keyframe"]
-        ),
+        _timing_line("tracking ms/frame", t["tracking_per_frame"], "frames tracked", ".1f")
+        + (" (CPU median {median:.1f})".format(**t["tracking_cpu_per_frame"])
+           if t["tracking_cpu_per_frame"]["count"] else ""),
+        _timing_line("local mapping ms/keyframe", t["local_mapping_per_keyframe"], "keyframes mapped", ".0f"),
     ]
     atlas = s.get("atlas", {})
     if len(atlas.get("maps", [])) > 1 or atlas.get("merges") or atlas.get("maps_started", 1) > 1:
@@ -318,15 +347,14 @@ def format_report(report: RunReport) -> list[str]:
         lines.append(f"relocalised {reloc['successes']} times ({reloc['attempts']} attempts)")
     if f["lost"]:
         lines.append(f"WARNING: tracking was lost; {f['lost']} frames have no pose in CameraTrajectory.txt")
-    if f["frames"] and f["frames"] - f["tracked"] > 0.1 * f["frames"]:
+    if f["tracked"] and f["frames"] - f["tracked"] > 0.1 * f["frames"]:
         lines.append(f"WARNING: {f['frames'] - f['tracked']} of {f['frames']} frames have no pose: the ATE below "
                      "covers only the frames tracked")  # fmt: skip
     if s["map_resets"]:
         lines.append(f"WARNING: the map was reset {s['map_resets']} time(s); frames before the last reset have "
                      "no pose")  # fmt: skip
     if f["tracked"] == 0:
-        lines.append("WARNING: the map was never initialised (too little parallax or texture); "
-                     "the trajectory files are empty")
+        lines.append(f"WARNING: {_why_no_pose(s.get('events', []))}; the trajectory files are empty")
     for name, a in report.ate.items():
         if "error" in a:
             lines.append(f"ATE ({name}): not available: {a['error']}")

@@ -57,9 +57,12 @@ import numpy as np
 import yaml
 
 from orbslam_hgcn.config import load_yaml, resolve_config, section_from_yaml
-from orbslam_hgcn.errors import ConfigError, where
-from orbslam_hgcn.pipeline.compare import MAX_UNTRACKED_SHARE, RunOutcome, outcome_from_stats, run_status, summarise
+from orbslam_hgcn.errors import ConfigError, Terminated, where
+from orbslam_hgcn.pipeline.compare import (
+    MAX_UNTRACKED_SHARE, RunOutcome, check_sequence_path, check_vocabulary, outcome_from_stats, run_status, summarise,
+)
 from orbslam_hgcn.pipeline.engine import Engine, TaskFailed
+from orbslam_hgcn.pipeline.results import check_output_folder
 
 log = logging.getLogger(__name__)
 
@@ -134,17 +137,6 @@ class _Lines:
         return line
 
 
-def _vocabulary_ok(v: str, base: Path) -> str | None:
-    """The vocabulary argument of a run (a shipped name, or an absolute file path), or None."""
-    from orbslam_hgcn.vocabulary.base import SHIPPED
-
-    if v in SHIPPED:
-        return v
-    p = Path(v).expanduser()
-    p = p if p.is_absolute() else base / p
-    return str(p) if p.is_file() else None
-
-
 def _check_overrides(raw: Any, mpath: Path, lines: _Lines, *keys: str | int) -> dict[str, Any]:
     """``section.key: value`` pairs checked against the stage configs' dataclasses."""
     from orbslam_hgcn.pipeline.system import Configs
@@ -211,10 +203,7 @@ def load_manifest(path: str | Path) -> Manifest:
                                   f"{', '.join(SEQUENCE_KEYS)}")
         if not s.get("path"):
             raise ConfigError(f"{at('sequences', i)}: sequence without a path")
-        p = Path(str(s["path"])).expanduser()
-        p = p if p.is_absolute() else base / p
-        if not p.exists():
-            raise ConfigError(f"{at('sequences', i, 'path')}: sequence path not found: {p}")
+        p = check_sequence_path(s["path"], base, at("sequences", i, "path"))
         name = str(s.get("name") or p.name)
         if not name or "/" in name or name.startswith("."):
             raise ConfigError(f"{at('sequences', i, 'name')}: bad sequence name {name!r} (it names a folder)")
@@ -242,10 +231,7 @@ def load_manifest(path: str | Path) -> Manifest:
         raise ConfigError(f"{at('vocabularies')}: vocabularies: give a list (orb, hgcn, kmeans, orb10k or files)")
     vocabs: list[str] = []
     for i, v in enumerate(vocabs_raw):
-        ok = _vocabulary_ok(str(v), base)
-        if ok is None:
-            raise ConfigError(f"{at('vocabularies', i)}: unknown vocabulary {v!r}: not a shipped one "
-                              "(orb, hgcn, kmeans, orb10k) nor a file")
+        ok = check_vocabulary(str(v), base, at("vocabularies", i))
         if any(Path(x).stem == Path(ok).stem for x in vocabs):
             raise ConfigError(f"{at('vocabularies', i)}: vocabulary {Path(ok).stem!r} given twice")
         vocabs.append(ok)
@@ -457,6 +443,7 @@ class Sweep:
     paths: dict[str, Path] = field(default_factory=dict)
     interrupted: bool = False
     executed: list[str] = field(default_factory=list)  # runs started by this sweep (rel paths)
+    terminated: bool = False  # interrupted by SIGTERM rather than Ctrl-C
     engine: str = ""
 
     def to_json(self) -> dict[str, Any]:
@@ -590,7 +577,7 @@ def run_sweep(
 
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
     engine = Engine(jobs, address, use_ray)
-    out = Path(out)
+    out = check_output_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     base = out.resolve()
     specs = plan_runs(m, base)
@@ -605,7 +592,7 @@ def run_sweep(
     if records:
         log.info("%d of %d runs finished before; running the other %d", len(records), len(specs), len(todo))
     executed: list[str] = []
-    interrupted = False
+    interrupted = terminated = False
     names = [s.name for s in m.sequences]
     bar = tqdm(total=len(specs), initial=len(records), desc="sweep", unit="run", disable=not progress)
     try:
@@ -623,12 +610,13 @@ def run_sweep(
                 bar.set_postfix_str(_running_medians(list(records.values()), names), refresh=True)
                 if on_run is not None:
                     on_run(rec)
-    except KeyboardInterrupt:
-        interrupted = True
+    except KeyboardInterrupt as exc:
+        interrupted, terminated = True, isinstance(exc, Terminated)
         log.warning("sweep interrupted: writing the tables of the %d runs finished", len(records))
     finally:
         bar.close()
     runs = [records[i] for i in sorted(records)]
-    sw = Sweep(m, runs, cell_records(m, runs), interrupted=interrupted, executed=executed, engine=engine.name)
+    sw = Sweep(m, runs, cell_records(m, runs), interrupted=interrupted, executed=executed, engine=engine.name,
+               terminated=terminated)
     write_tables(sw, base)
     return sw

@@ -527,7 +527,8 @@ class System:
         if map_changed:
             self._map_changed(frame_id, timestamp, result)
         if result.initialized:
-            self.events.append({"frame": frame_id, "t": timestamp, "event": "initialized", "map": self.map.map_id})
+            self.events.append({"frame": frame_id, "t": timestamp, "event": "initialized", "map": self.map.map_id,
+                                "keyframe_frames": [kf.frame_id for kf in result.new_keyframes]})
         if result.lost:
             self.events.append({"frame": frame_id, "t": timestamp, "event": "lost", "map": self.map.map_id})
         if map_changed:
@@ -613,7 +614,8 @@ class System:
                 if self.atlas.map_of(k) is None:
                     self.database.erase(k)
         event = "reset" if result.reset else "new_map" if result.new_map else "map_switched"
-        self.events.append({"frame": frame_id, "t": timestamp, "event": event, "map": self.map.map_id})
+        self.events.append({"frame": frame_id, "t": timestamp, "event": event, "map": self.map.map_id,
+                            **({"why": result.why} if result.why else {})})
 
     # --- a whole sequence ----------------------------------------------------------------
     def run(

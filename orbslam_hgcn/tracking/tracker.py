@@ -100,6 +100,7 @@ class TrackResult:
     reset: bool = False  # the map was discarded on this frame (tracker.map is a new one)
     new_map: bool = False  # a new map was started on this frame; the previous one is kept (atlas)
     switched_map: bool = False  # relocalised into another map of the atlas, now the active one
+    why: str = ""  # why the map was reset or a new one started
     # A keyframe was due by the rules (keyframe_decision.keyframe_starved) but local mapping
     # was busy: the caller may let mapping catch up before the next frame.
     keyframe_starved: bool = False
@@ -383,9 +384,8 @@ class Tracker:
                     frame.id, frame.timestamp, n_in, m.n_keyframes(),
                 )  # fmt: skip
             if m.n_keyframes() <= cfg.reset_max_keyframes and not self.localization:
-                log.warning(
-                    "map reset: tracking lost with only %d keyframes; initialising again", m.n_keyframes()
-                )
+                result.why = f"tracking lost with only {m.n_keyframes()} keyframe(s) in the map"
+                log.warning("map reset: %s; initialising again", result.why)
                 self.reset()
                 result.reset = True
             elif (
@@ -396,6 +396,7 @@ class Tracker:
                             frame.id, frame.timestamp, frame.timestamp - self.lost_since, m.map_id)  # fmt: skip
                 self.start_new_map()
                 result.new_map = True
+                result.why = f"tracking lost for {frame.timestamp - self.lost_since:.1f} s"
             elif was_ok and self.relocalizer is None and self.atlas is None:
                 log.warning("no relocalisation available: the remaining frames are counted as lost")
         result.state = self.state

@@ -101,6 +101,9 @@ def parse_rerun_arg(tokens: Sequence[str] | None) -> tuple[str, str | None]:
             raise ConfigError(f"--rerun save {rest[0]!r}: the file name must end in .rrd")
         if path.is_dir():
             raise ConfigError(f"--rerun save {rest[0]!r}: is a directory, expected a FILE.rrd")
+        folder = next((p for p in path.absolute().parents if p.exists()), None)
+        if folder is not None and not folder.is_dir():
+            raise ConfigError(f"--rerun save {rest[0]!r}: cannot be created: {folder} is a file")
         return "save", str(path)
     if len(rest) > 1:
         raise ConfigError(f"--rerun connect takes one address, got {' '.join(rest)!r}")

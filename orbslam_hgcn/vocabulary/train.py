@@ -28,9 +28,10 @@ from tqdm import tqdm
 
 from orbslam_hgcn.config import HgcnTrainConfig, ORBConfig, TreeTrainConfig
 from orbslam_hgcn.datasets.base import IMAGE_SUFFIXES
-from orbslam_hgcn.errors import DatasetError, OrbslamError, VocabularyError
+from orbslam_hgcn.errors import ConfigError, DatasetError, OrbslamError, VocabularyError
 from orbslam_hgcn.npzfile import atomic_save_npz, read_npz
 from orbslam_hgcn.pipeline.engine import Engine
+from orbslam_hgcn.pipeline.results import check_output_file
 from orbslam_hgcn.vocabulary.base import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -239,7 +240,7 @@ def train_vocabulary(
         from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
 
         tc = tree or TreeTrainConfig()
-        if words:
+        if words is not None:
             tc = dataclasses.replace(tc, levels=max(1, int(round(np.log(words) / np.log(tc.k)))))
         return train_tree_vocabulary(desc, image_ids, k=tc.k, levels=tc.levels, max_iters=tc.max_iters,
                                      seed=tc.seed, trained_on=trained_on, progress=progress)
@@ -247,7 +248,7 @@ def train_vocabulary(
         from orbslam_hgcn.vocabulary.hgcn_vocab import train_hgcn_vocabulary
 
         hc = hgcn or HgcnTrainConfig()
-        if words:
+        if words is not None:
             hc = dataclasses.replace(hc, n_words=int(words))
         return train_hgcn_vocabulary(desc, image_ids, hc, track_ids=track_ids, trained_on=trained_on,
                                      progress=progress, device=device)
@@ -255,7 +256,7 @@ def train_vocabulary(
         from orbslam_hgcn.vocabulary.flat import train_kmeans_vocabulary
 
         hc = hgcn or HgcnTrainConfig()
-        if words:
+        if words is not None:
             hc = dataclasses.replace(hc, n_words=int(words))
         return train_kmeans_vocabulary(desc, image_ids, hc, trained_on=trained_on, progress=progress)
     raise OrbslamError(f"unknown vocabulary kind {kind!r}; use 'orb', 'hgcn' or 'kmeans'")
@@ -288,9 +289,13 @@ def train_from_images(
     CPUs, or the cluster at ``address``; :mod:`orbslam_hgcn.pipeline.engine`), when
     ``jobs`` > 1 or ``address`` is given; else in this process.
     """
-    out = Path(out)
     if not images:
         raise OrbslamError("no image sources given (--images)")
+    for name, value, least in (("--words", words, 1 if kind == "orb" else 2), ("--max-images", max_images, 1),
+                               ("--features", n_features, 1), ("--jobs", jobs, 1)):
+        if value is not None and value < least:
+            raise ConfigError(f"{name} must be at least {least}, found {value}")
+    out = check_output_file(out, "--out")
     t0 = time.perf_counter()
     sources = [open_image_source(p) for p in images]
     pairs = select_images(sources, max_images)
