@@ -285,6 +285,7 @@ def _add_synth(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--texel-scale", type=float, help="texel sizes times this (coarser, faster) (default 1)")
     p.add_argument("--loop-gt", action="store_true", default=None,
                    help="write loop_gt.npy (frame pairs that revisit a place)")
+    p.add_argument("--laps", type=int, help="office loop: times round the desk, each lap beside the others (default 1)")
     p.add_argument("--depth", action="store_true", default=None,
                    help="also write depth images (TUM: 5000 per metre; KITTI layout: 256 per metre)")
     p.add_argument("--force", action="store_true", help="overwrite a non-empty output folder")
@@ -303,7 +304,7 @@ def _run_synth(args: argparse.Namespace) -> int:
         "exposure_settle": args.exposure_settle, "jpeg_quality": args.jpeg_quality, "fog": args.fog,
         "seed": args.seed, "scene_seed": args.scene_seed, "texture_seed": args.texture_seed,
         "repeated_texture": args.repeated_texture, "texel_scale": args.texel_scale, "loop_gt": args.loop_gt,
-        "depth": args.depth,
+        "depth": args.depth, "laps": args.laps,
     }
     options = synth_options(args.preset, **{k: v for k, v in given.items() if v is not None})
     out = render_sequence(args.out, options, force=args.force)
