@@ -503,15 +503,17 @@ def lcd_command(
         warning = warn_hidden_loops(name, prep)
         if warning:
             log.warning("%s", warning)
-    if train_prep.gt is None:
-        lines.append(f"train: no loop ground truth ({Path(train) / 'loop_gt.npy'} or --train-gt): thresholds not "
+    train_gt_mat = train_prep.gt if train_prep.gt is not None and train_prep.gt.any() else None
+    if train_gt_mat is None:
+        why = "no loop ground truth" if train_prep.gt is None else "a ground truth without a loop"
+        lines.append(f"train: {why} ({Path(train) / 'loop_gt.npy'} or --train-gt): thresholds not "
                      "given are the fixed defaults")
     describer = Describer(features, n_features)
     vocabularies = load_vocabularies(methods, vocab, vocab_orb, vocab_hgcn, levels)
     run_cfg = dataclasses.replace(cfg, min_gap=test_prep.window.gap)
     results = run_lcd(methods, train_prep.source, test_prep.source, test_prep.gt, vocabularies, describer, run_cfg,
                       fabmap_threshold=fabmap_threshold, bow_threshold=bow_threshold,
-                      train_gt=train_prep.gt, train_gap=train_prep.window.gap if train_prep.window else None,
+                      train_gt=train_gt_mat, train_gap=train_prep.window.gap if train_prep.window else None,
                       memory_limit_mb=memory_limit_mb)
     extra = {
         "train": str(train), "test": str(test), "ground_truth": str(gt_path),
