@@ -47,6 +47,7 @@ from orbslam_hgcn.placerec.metrics import (
     DetectorScore,
     PRCurve,
     best_matches,
+    candidate_mask,
     full_precision_threshold,
     score_detector,
 )
@@ -503,9 +504,11 @@ def lcd_command(
         warning = warn_hidden_loops(name, prep)
         if warning:
             log.warning("%s", warning)
-    train_gt_mat = train_prep.gt if train_prep.gt is not None and train_prep.gt.any() else None
+    train_gt_mat = train_prep.gt
+    if train_gt_mat is not None and not (train_gt_mat & candidate_mask(len(train_gt_mat), train_prep.window.gap)).any():
+        train_gt_mat = None  # no loop outside the window: nothing to fit a threshold on
     if train_gt_mat is None:
-        why = "no loop ground truth" if train_prep.gt is None else "a ground truth without a loop"
+        why = "no loop ground truth" if train_prep.gt is None else "no ground-truth loop outside the window"
         lines.append(f"train: {why} ({Path(train) / 'loop_gt.npy'} or --train-gt): thresholds not "
                      "given are the fixed defaults")
     describer = Describer(features, n_features)
