@@ -148,7 +148,12 @@ def _add_lcd(sub: argparse._SubParsersAction) -> None:
         "The memory each detector needs (its (n, n) matrices over the test images; FAB-MAP: its "
         "per-word tables and Chow-Liu tree, linear in the vocabulary) is checked against the memory "
         "available (or $ORBSLAM_HGCN_MEMORY_LIMIT_MB) before it runs; when it does not fit, the command stops "
-        "with status 2: use a smaller vocabulary, --levels, or fewer images.",
+        "with status 2: use a smaller vocabulary, --levels, or fewer images. By default a video-rate "
+        "sequence is sampled to about one image per distinct view (0.25 m or 15 deg of ground-truth "
+        "camera motion, else one image per 0.5 s), a query is compared only with images outside an "
+        "exclusion window (the ground truth's smallest loop separation, else 10 s), and the "
+        "recall/accuracy thresholds are fitted on the training sequence (highest recall at 100%% "
+        "precision there; it needs TRAIN/loop_gt.npy or --train-gt).",
     )
     p.add_argument("--method", default="all",
                    help="bow, hgcn-bow, fabmap2, hgcn-fabmap, a comma list, or all (default)")
@@ -157,6 +162,9 @@ def _add_lcd(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gt", default=None,
                    help="ground-truth loop matrix of the test images (.mat, .txt, .csv, .npy); "
                    "default TEST/loop_gt.npy")
+    p.add_argument("--train-gt", default=None,
+                   help="ground-truth loop matrix of the training images, for fitting the thresholds; "
+                   "default TRAIN/loop_gt.npy when present")
     p.add_argument("--vocab", default=None,
                    help="one vocabulary for every method: orb, hgcn or a file (default: ORB tree "
                    "for bow/fabmap2, HGCN vocabulary for hgcn-*)")
@@ -172,13 +180,24 @@ def _add_lcd(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="YAML file with a 'fabmap:' section (FabmapConfig)")
     p.add_argument("--new-place", choices=("mean_field", "sampled"), default=None,
                    help="FAB-MAP new-place likelihood (default from config: mean_field)")
-    p.add_argument("--min-gap", type=int, default=None,
-                   help="compare a query only with images at least this many frames earlier")
+    window = p.add_mutually_exclusive_group()
+    window.add_argument("--min-gap", type=int, default=None,
+                        help="compare a query only with images at least this many (sampled) images earlier "
+                        "(default: the ground truth's smallest loop separation, else --window-s 10)")
+    window.add_argument("--window-s", type=float, default=None,
+                        help="compare a query only with images at least this many seconds earlier")
     p.add_argument("--threshold", type=float, default=None,
-                   help="FAB-MAP acceptance probability for recall/accuracy (default 0.99)")
+                   help="FAB-MAP acceptance probability for recall/accuracy (default: fitted on the "
+                   "training sequence, else 0.99)")
     p.add_argument("--bow-threshold", type=float, default=None,
-                   help="BoW acceptance cosine similarity for recall/accuracy (default 0.3)")
-    p.add_argument("--stride", type=int, default=1, help="use every stride-th image of both sequences")
+                   help="BoW acceptance cosine similarity for recall/accuracy (default: fitted on the "
+                   "training sequence, else 0.3)")
+    sampling = p.add_mutually_exclusive_group()
+    sampling.add_argument("--stride", type=int, default=None,
+                          help="use every stride-th image of both sequences (default: sampled by camera motion "
+                          "or time, see above)")
+    sampling.add_argument("--every-s", type=float, default=None,
+                          help="use one image per this many seconds of both sequences")
     p.add_argument("--limit", type=int, default=None, help="use at most this many images of each")
     p.set_defaults(func=_run_lcd)
 
@@ -201,15 +220,17 @@ def _run_lcd(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, new_place=args.new_place)
     if args.min_gap is not None:
         cfg = dataclasses.replace(cfg, min_gap=args.min_gap)
-    results, paths = lcd.lcd_command(
-        method=args.method, train=args.train, test=args.test, gt=args.gt, out=args.out,
+    run = lcd.lcd_command(
+        method=args.method, train=args.train, test=args.test, gt=args.gt, train_gt=args.train_gt, out=args.out,
         features=args.features, vocab=args.vocab, vocab_orb=args.vocab_orb, vocab_hgcn=args.vocab_hgcn,
-        cfg=cfg, stride=args.stride, limit=args.limit, n_features=args.n_features, levels=args.levels,
-        fabmap_threshold=lcd.DEFAULT_FABMAP_THRESHOLD if args.threshold is None else args.threshold,
-        bow_threshold=lcd.DEFAULT_BOW_THRESHOLD if args.bow_threshold is None else args.bow_threshold,
+        cfg=cfg, stride=args.stride, every_s=args.every_s, window_s=args.window_s, limit=args.limit,
+        n_features=args.n_features, levels=args.levels,
+        fabmap_threshold=args.threshold, bow_threshold=args.bow_threshold,
     )
-    print(lcd.format_table(results))
-    for path in paths:
+    for line in run.lines:
+        print(line)
+    print(lcd.format_table(run.results))
+    for path in run.paths:
         print(f"wrote {path}")
     return 0
 
@@ -311,6 +332,7 @@ def _add_synth(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--texel-scale", type=float, help="texel sizes times this (coarser, faster) (default 1)")
     p.add_argument("--loop-gt", action="store_true", default=None,
                    help="write loop_gt.npy (frame pairs that revisit a place)")
+    p.add_argument("--laps", type=int, help="office loop: times round the desk, each lap beside the others (default 1)")
     p.add_argument("--depth", action="store_true", default=None,
                    help="also write depth images (TUM: 5000 per metre; KITTI layout: 256 per metre)")
     p.add_argument("--force", action="store_true", help="overwrite a non-empty output folder")
@@ -329,7 +351,7 @@ def _run_synth(args: argparse.Namespace) -> int:
         "exposure_settle": args.exposure_settle, "jpeg_quality": args.jpeg_quality, "fog": args.fog,
         "seed": args.seed, "scene_seed": args.scene_seed, "texture_seed": args.texture_seed,
         "repeated_texture": args.repeated_texture, "texel_scale": args.texel_scale, "loop_gt": args.loop_gt,
-        "depth": args.depth,
+        "depth": args.depth, "laps": args.laps,
     }
     from orbslam_hgcn.pipeline.results import check_output_folder
 

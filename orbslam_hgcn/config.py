@@ -352,7 +352,9 @@ class FabmapConfig:
     motion_model: bool = True  # prior favours the previous match's neighbours (else uniform)
     motion_bias: float = 0.5  # share of neighbour mass moved forward (1: all forward)
     prior_spread: float = 0.01  # share of the known-place prior always spread uniformly
-    min_gap: int = 1  # a query is compared with images at least this many frames earlier
+    # A query is compared with images at least this many images earlier; 0: chosen from the
+    # data (lcd: the ground truth's smallest loop separation, else 10 s of timestamps).
+    min_gap: int = 0
     seed: int = 0  # seed of the training-image sample
 
 

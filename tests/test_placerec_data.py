@@ -115,7 +115,7 @@ def test_lcd_cli_missing_vocabulary_file(tmp_path, capsys):
     test = _image_folder(tmp_path / "test", 3, seed=2)
     np.save(test / "loop_gt.npy", np.zeros((3, 3)))
     missing = tmp_path / "nowhere.npz"
-    code = main(["lcd", "--train", str(train), "--test", str(test), "--vocab", str(missing),
+    code = main(["lcd", "--train", str(train), "--test", str(test), "--vocab", str(missing), "--min-gap", "1",
                  "--out", str(tmp_path / "o")])
     assert code == 2
     assert f"{missing}: vocabulary file not found" in capsys.readouterr().err

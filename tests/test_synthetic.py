@@ -9,7 +9,7 @@ import pytest
 
 from orbslam_hgcn.cli import main
 from orbslam_hgcn.config import load_camera
-from orbslam_hgcn.errors import DatasetError
+from orbslam_hgcn.errors import ConfigError, DatasetError
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import rotation_angle_deg
 from orbslam_hgcn.synth.layout import DeskSpec
@@ -404,3 +404,22 @@ def test_camera_effects_blur_noise_and_drift():
     assert 0.8 <= gain <= 1.2 and abs(offset) <= 2.4
     out = drift.apply(sharp, t, 40).astype(np.float32)
     np.testing.assert_allclose(out[inner], np.clip(sharp * gain + offset, 0, 255)[inner], atol=0.51)
+
+
+def test_loop_laps_pass_beside_each_other_and_close_after_the_last():
+    """--laps 2: the second lap revisits the first from 0.1-0.3 m beside it (still one
+    place for the loop ground truth), the camera never jumps, and the path closes."""
+    from orbslam_hgcn.synth.trajectory import loop_ground_truth
+
+    opts = SynthOptions(frames=600, laps=2, fps=30, scene_seed=4)
+    _, poses, stamps, info = build_sequence(opts)
+    assert info["period_s"] == pytest.approx(10.0)
+    P = poses(stamps)
+    twin = np.linalg.norm(P[300:, :3, 3] - P[:300, :3, 3], axis=1)
+    assert 0.05 < twin.min() and twin.max() < 0.4
+    assert np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).max() < 0.05  # under 5 cm per frame
+    np.testing.assert_allclose(poses(np.array([20.0]))[0], P[0], atol=1e-9)  # closes after two laps
+    gt = loop_ground_truth(P)
+    assert gt[np.arange(300, 600), np.arange(300)].all()
+    with pytest.raises(ConfigError, match="laps"):
+        SynthOptions(trajectory="replay", gt="x.txt", laps=2).validate()

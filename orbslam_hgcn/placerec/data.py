@@ -139,11 +139,13 @@ class ImageSource:
 
     ``path``: a folder of images (natural name order, no calibration needed), or any
     sequence :func:`orbslam_hgcn.datasets.open_sequence` reads (TUM, EuRoC, KITTI, video
-    with ``camera``). ``stride`` keeps every stride-th image; ``limit`` the first ones.
+    with ``camera``). ``stride`` keeps every stride-th image, or ``indices`` the given
+    frames; ``limit`` the first ones of those.
     """
 
     def __init__(
-        self, path: str | Path, *, stride: int = 1, limit: int | None = None, camera: str | None = None
+        self, path: str | Path, *, stride: int = 1, limit: int | None = None, camera: str | None = None,
+        indices: np.ndarray | None = None,
     ) -> None:
         from orbslam_hgcn.datasets import detect_kind
         from orbslam_hgcn.datasets.folder import list_images
@@ -164,13 +166,62 @@ class ImageSource:
             self._seq = open_sequence(kind, self.path, camera)
             total = len(self._seq)
         self.total = total
-        idx = np.arange(0, total, stride)
+        idx = np.arange(0, total, stride) if indices is None else np.asarray(indices, dtype=np.int64)
         self.indices = idx[:limit] if limit is not None else idx
         if len(self.indices) == 0:
             raise DatasetError(f"{self.path}: no images in the sequence")
 
     def __len__(self) -> int:
         return len(self.indices)
+
+    def select(self, indices: np.ndarray, limit: int | None = None) -> ImageSource:
+        """The same sequence restricted to the frames ``indices`` (of the whole sequence)."""
+        other = object.__new__(ImageSource)
+        other.__dict__.update(self.__dict__)
+        idx = np.asarray(indices, dtype=np.int64)
+        other.indices = idx[:limit] if limit is not None else idx
+        if len(other.indices) == 0:
+            raise DatasetError(f"{self.path}: no images selected")
+        return other
+
+    @property
+    def all_timestamps(self) -> np.ndarray | None:
+        """(total,) float64 seconds of every frame of the sequence; None for an image folder."""
+        return None if self._seq is None else np.asarray(self._seq.timestamps, dtype=np.float64)
+
+    @property
+    def timestamps(self) -> np.ndarray | None:
+        """(n,) float64 seconds of the selected frames; None for an image folder."""
+        t = self.all_timestamps
+        return None if t is None else t[self.indices]
+
+    @property
+    def all_poses(self) -> np.ndarray | None:
+        """(total, 4, 4) float64 ground-truth ``T_wc`` of every frame, NaN where a frame has
+        none; None when the sequence has no ground truth."""
+        pose = getattr(self._seq, "pose", None)
+        if pose is None:
+            return None
+        poses = np.full((self.total, 4, 4), np.nan)
+        for i in range(self.total):
+            p = pose(i)
+            if p is not None:
+                poses[i] = p
+        return poses if np.isfinite(poses[:, 0, 0]).any() else None
+
+    def names(self) -> list[str]:
+        """The selected images' file names (relative to the sequence folder where it can)."""
+        paths = self._paths if self._paths is not None else getattr(self._seq, "paths", None)
+        if paths is None:
+            return [f"frame {i}" for i in self.indices]
+        out = []
+        for i in self.indices:
+            p = Path(paths[i])
+            try:
+                out.append(str(p.relative_to(self.path)))
+            except ValueError:
+                out.append(str(p))
+        return out
 
     def __iter__(self) -> Iterator[np.ndarray]:
         """(H, W) uint8 grayscale images."""

@@ -15,6 +15,12 @@ Training supplies the IDF weights (BoW) or the Chow-Liu tree and the sampled new
 model (FAB-MAP). Every method yields an (n, n) matrix over the test images, scored by
 :mod:`orbslam_hgcn.placerec.metrics` against the ground-truth loop matrix.
 
+``orbslam-hgcn lcd`` (:func:`lcd_command`) chooses by default which images it compares and
+how: about one image per distinct view of each sequence, the ground truth's revisits as the
+loops, an exclusion window from the ground truth or the timestamps
+(:mod:`orbslam_hgcn.placerec.window`), and the recall/accuracy threshold of each detector
+fitted on the training sequence (:func:`fit_threshold`).
+
 Before any detector runs, the memory each one needs is estimated (FAB-MAP's per-word tables
 and Chow-Liu tree, the (n, n) matrices) and checked against the memory available (:mod:`orbslam_hgcn.placerec.memory`); one that does not fit
 stops the comparison with an OrbslamError naming the way out: a smaller vocabulary, the ORB
@@ -23,6 +29,7 @@ tree's words taken at a coarser level (``levels``), or fewer images.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,8 +43,16 @@ from orbslam_hgcn.placerec.chow_liu import learn_chow_liu_tree
 from orbslam_hgcn.placerec.describe import Describer, WordQuantizer, describe_images, words_of
 from orbslam_hgcn.placerec.fabmap import FabMap2
 from orbslam_hgcn.placerec.memory import bow_bytes, check_memory, fabmap_bytes
-from orbslam_hgcn.placerec.metrics import DetectorScore, PRCurve, score_detector
+from orbslam_hgcn.placerec.metrics import (
+    DetectorScore,
+    PRCurve,
+    best_matches,
+    candidate_mask,
+    full_precision_threshold,
+    score_detector,
+)
 from orbslam_hgcn.placerec.sequence import PlaceMatches, run_fabmap
+from orbslam_hgcn.placerec.window import NEAR_IMAGES, NEAR_SHARE, recent_past_share
 from orbslam_hgcn.placerec.words import count_matrix, occurrence_matrix
 
 log = logging.getLogger(__name__)
@@ -45,8 +60,9 @@ log = logging.getLogger(__name__)
 METHODS = ("bow", "hgcn-bow", "fabmap2", "hgcn-fabmap")
 METHOD_VOCAB = {"bow": "orb", "hgcn-bow": "hgcn", "fabmap2": "orb", "hgcn-fabmap": "hgcn"}
 METHOD_LABEL = {"bow": "BoW", "hgcn-bow": "HGCN-BoW", "fabmap2": "FAB-MAP 2.0", "hgcn-fabmap": "HGCN-FABMAP"}
-# Acceptance thresholds of the recall/accuracy columns. FAB-MAP: posterior p(L_j | Z) of
-# 0.99, the operating point of Cummins & Newman (IJRR 2008, sec. 6). BoW: cosine similarity.
+# Acceptance thresholds of the recall/accuracy columns when they cannot be fitted on the
+# training sequence (it has no loop ground truth). FAB-MAP: posterior p(L_j | Z) of 0.99, the
+# operating point of Cummins & Newman (IJRR 2008, sec. 6). BoW: cosine similarity.
 DEFAULT_FABMAP_THRESHOLD = 0.99
 DEFAULT_BOW_THRESHOLD = 0.3
 
@@ -91,12 +107,21 @@ class WordData:
 
 @dataclass(frozen=True, eq=False)
 class LcdResult:
-    """One detector's output and its scores."""
+    """One detector's output and its scores.
+
+    threshold_from: where the recall/accuracy threshold came from ("fitted on training",
+    "given", "fixed"); train_score: the detector's scores on the training sequence at that
+    threshold (when it was fitted there); recent_share: share of the test queries whose best
+    match lies within a few images of the query (:func:`~orbslam_hgcn.placerec.window.recent_past_share`).
+    """
 
     method: str
     matches: PlaceMatches
     score: DetectorScore
     curve: PRCurve
+    threshold_from: str = "fixed"
+    train_score: DetectorScore | None = None
+    recent_share: float = 0.0
 
 
 MEMORY_WAY_OUT = (
@@ -168,38 +193,89 @@ def detect(
     return run_bow(count_matrix(words.train, words.n_words), count_matrix(words.test, words.n_words), cfg.min_gap)
 
 
+def _decision_scores(matches: PlaceMatches) -> tuple[np.ndarray, float]:
+    """The matrix decisions are taken on (FAB-MAP: log posteriors) and its floor."""
+    if matches.log_scores is not None:
+        return matches.log_scores, -np.inf
+    return matches.scores, 0.0
+
+
+def fit_threshold(
+    method: str, words: WordData, train_gt: np.ndarray, cfg: FabmapConfig, *, progress: bool = False,
+    memory_limit_mb: float | None = None,
+) -> tuple[float, DetectorScore]:
+    """The detector run over its own training images (``cfg.min_gap`` their window): the
+    threshold of the highest recall at 100% precision there, in the detector's decision
+    space (FAB-MAP: log posterior), and its training scores at that threshold."""
+    own = WordData(words.train, words.train, words.n_words)
+    matches = detect(method, own, cfg, progress=progress, memory_limit_mb=memory_limit_mb)
+    values, floor = _decision_scores(matches)
+    thr = full_precision_threshold(values, train_gt, matches.min_gap, floor=floor)
+    summary, _ = score_detector(METHOD_LABEL[method], matches.scores, train_gt, thr, matches.min_gap,
+                                log_scores=matches.log_scores, threshold_is_log=matches.log_scores is not None)
+    return thr, summary
+
+
 def evaluate_methods(
     methods: list[str],
     words_for: dict[str, WordData],
     gt: np.ndarray,
     cfg: FabmapConfig,
     *,
-    fabmap_threshold: float = DEFAULT_FABMAP_THRESHOLD,
-    bow_threshold: float = DEFAULT_BOW_THRESHOLD,
+    fabmap_threshold: float | None = None,
+    bow_threshold: float | None = None,
+    train_gt: np.ndarray | None = None,
+    train_gap: int | None = None,
     progress: bool = False,
     memory_limit_mb: float | None = None,
 ) -> list[LcdResult]:
     """Run and score ``methods``; ``words_for[method]`` holds each method's words.
 
-    Every method's memory is checked (:func:`detector_memory` against ``memory_limit_mb``,
-    else the memory available) before the first one runs.
+    The recall/accuracy threshold of a method is ``fabmap_threshold`` / ``bow_threshold``
+    when given; else, with ``train_gt`` (the training images' loop matrix), the one fitted on
+    the training sequence (:func:`fit_threshold`, window ``train_gap``, default
+    ``cfg.min_gap``); else the fixed defaults. Every method's memory is checked
+    (:func:`detector_memory` against ``memory_limit_mb``, else the memory available) before
+    the first one runs.
     """
     for method in methods:
         wd = words_for[method]
         if gt.shape != (len(wd.test), len(wd.test)):
             raise OrbslamError(f"ground truth is {gt.shape[0]}x{gt.shape[1]} but there are {len(wd.test)} test images")
+        if train_gt is not None and train_gt.shape != (len(wd.train), len(wd.train)):
+            raise OrbslamError(f"training ground truth is {train_gt.shape[0]}x{train_gt.shape[1]} but there are "
+                               f"{len(wd.train)} training images")
         need, what = detector_memory(method, wd)
         check_memory(need, what, MEMORY_WAY_OUT, limit_mb=memory_limit_mb)
+        if train_gt is not None:
+            need, what = detector_memory(method, WordData(wd.train, wd.train, wd.n_words))
+            check_memory(need, what, MEMORY_WAY_OUT, limit_mb=memory_limit_mb)
+    train_cfg = dataclasses.replace(cfg, min_gap=train_gap if train_gap is not None else cfg.min_gap)
     results = []
     for method in methods:
         wd = words_for[method]
         log.info("%s: %d training and %d test images, %d words",
                  METHOD_LABEL[method], len(wd.train), len(wd.test), wd.n_words)
+        given = fabmap_threshold if is_fabmap(method) else bow_threshold
+        train_score = None
+        if given is not None:
+            thr, source, is_log = given, "given", False
+        elif train_gt is not None:
+            thr, train_score = fit_threshold(method, wd, train_gt, train_cfg, progress=progress,
+                                             memory_limit_mb=memory_limit_mb)
+            source, is_log = "fitted on training", is_fabmap(method)
+        else:
+            thr, source, is_log = (DEFAULT_FABMAP_THRESHOLD if is_fabmap(method) else DEFAULT_BOW_THRESHOLD), "fixed", False
         matches = detect(method, wd, cfg, progress=progress, memory_limit_mb=memory_limit_mb)
-        thr = fabmap_threshold if is_fabmap(method) else bow_threshold
         summary, curve = score_detector(METHOD_LABEL[method], matches.scores, gt, thr, matches.min_gap,
-                                        log_scores=matches.log_scores)
-        results.append(LcdResult(method, matches, summary, curve))
+                                        log_scores=matches.log_scores, threshold_is_log=is_log)
+        best, _ = best_matches(_decision_scores(matches)[0], matches.min_gap)
+        share = recent_past_share(best)
+        if share > NEAR_SHARE:
+            log.warning("%s: the best matches of %.0f%% of the test queries lie within %d images of the query "
+                        "(exclusion window: %d images): it finds the recent past, not loops; widen the window "
+                        "(--window-s, --min-gap)", METHOD_LABEL[method], 100 * share, NEAR_IMAGES, matches.min_gap)
+        results.append(LcdResult(method, matches, summary, curve, source, train_score, share))
     return results
 
 
@@ -210,17 +286,24 @@ def format_table(results: list[LcdResult]) -> str:
         return "   n/a" if x != x else f"{100 * x:6.1f}"
 
     lines = [
-        f"{'method':<13} {'thresh':>6} {'recall%':>7} {'accuracy%':>9} {'TP':>5} {'FP':>5} {'FN':>5} "
+        f"{'method':<13} {'thresh':>8} {'from':<8} {'recall%':>7} {'accuracy%':>9} {'TP':>5} {'FP':>5} {'FN':>5} "
         f"{'R@100P%':>7} {'AUC%':>6}"
     ]
+    short = {"fitted on training": "training", "given": "given", "fixed": "fixed"}
     for r in results:
         s = r.score
+        thr = f"{s.threshold:8.2f}" if 0.01 <= s.threshold or s.threshold == 0 else f"{s.threshold:8.1e}"
         lines.append(
-            f"{s.method:<13} {s.threshold:6.2f} {pct(s.recall):>7} {pct(s.accuracy):>9} {s.tp:5d} {s.fp:5d} "
-            f"{s.fn:5d} {pct(s.recall_at_100p):>7} {pct(s.auc):>6}"
+            f"{s.method:<13} {thr} {short.get(r.threshold_from, r.threshold_from):<8} {pct(s.recall):>7} "
+            f"{pct(s.accuracy):>9} {s.tp:5d} {s.fp:5d} {s.fn:5d} {pct(s.recall_at_100p):>7} {pct(s.auc):>6}"
         )
     n_pos = results[0].score.n_positive if results else 0
     lines.append(f"({n_pos} test images have a true loop; accuracy = precision TP/(TP+FP))")
+    if any(r.threshold_from == "fitted on training" for r in results):
+        fits = ", ".join(f"{r.score.method} {pct(r.train_score.recall).strip()}%" for r in results
+                         if r.train_score is not None)
+        lines.append("(thresholds from training: the highest recall at 100% precision on the training sequence; "
+                     f"training recall there: {fits})")
     return "\n".join(lines)
 
 
@@ -250,6 +333,9 @@ def write_outputs(
             "matched": r.matches.matched,
             "p_new": r.matches.p_new,
             "min_gap": r.matches.min_gap,
+            "threshold_from": r.threshold_from,
+            "train_score": r.train_score.as_dict() if r.train_score is not None else None,
+            "recent_past_share": r.recent_share,
         }
     curves = {r.score.method: (r.curve.recall, r.curve.precision) for r in results}
     paths.append(plot_pr_curves(out / "pr_curves.png", curves))
@@ -284,8 +370,10 @@ def run_lcd(
     describer: Describer,
     cfg: FabmapConfig,
     *,
-    fabmap_threshold: float = DEFAULT_FABMAP_THRESHOLD,
-    bow_threshold: float = DEFAULT_BOW_THRESHOLD,
+    fabmap_threshold: float | None = None,
+    bow_threshold: float | None = None,
+    train_gt: np.ndarray | None = None,
+    train_gap: int | None = None,
     progress: bool = True,
     memory_limit_mb: float | None = None,
 ) -> list[LcdResult]:
@@ -293,6 +381,7 @@ def run_lcd(
 
     train_images, test_images: sized iterables of grayscale images. vocabularies: for each
     method, the vocabulary object it uses (methods sharing one object share its words).
+    Thresholds, ``train_gt`` and ``train_gap``: see :func:`evaluate_methods`.
     memory_limit_mb: the memory the detectors may use (default: what the machine has
     available, or ``$ORBSLAM_HGCN_MEMORY_LIMIT_MB``).
     """
@@ -310,7 +399,8 @@ def run_lcd(
             cache[id(vocab)] = quantize_sequences(train_desc, test_desc, vocab)
         words_for[m] = cache[id(vocab)]
     return evaluate_methods(methods, words_for, gt, cfg, fabmap_threshold=fabmap_threshold,
-                            bow_threshold=bow_threshold, progress=progress, memory_limit_mb=memory_limit_mb)
+                            bow_threshold=bow_threshold, train_gt=train_gt, train_gap=train_gap,
+                            progress=progress, memory_limit_mb=memory_limit_mb)
 
 
 def load_vocabularies(
@@ -344,26 +434,14 @@ def load_vocabularies(
     return out
 
 
-def ground_truth_for(gt_path: Path, source) -> np.ndarray:
-    """The (n, n) loop matrix of the selected test images.
+@dataclass(frozen=True, eq=False)
+class LcdRun:
+    """What ``orbslam-hgcn lcd`` did: results, files written, and the lines that say which
+    images and windows it used (printed before the table)."""
 
-    A matrix over every image of the sequence is cut down to the selected ones (stride /
-    limit); any other size is a DatasetError naming the file.
-    """
-    from orbslam_hgcn.errors import DatasetError
-    from orbslam_hgcn.placerec.data import load_ground_truth
-
-    gt = load_ground_truth(gt_path)
-    n = len(source)
-    if gt.shape[0] == n:
-        return gt
-    idx = source.indices
-    if gt.shape[0] == source.total:
-        return gt[np.ix_(idx, idx)]
-    raise DatasetError(
-        f"{gt_path}: ground truth is {gt.shape[0]}x{gt.shape[1]} but the test sequence has "
-        f"{n} selected images ({source.total} in all)"
-    )
+    results: list[LcdResult]
+    paths: list[Path]
+    lines: list[str]
 
 
 def lcd_command(
@@ -373,46 +451,86 @@ def lcd_command(
     test: str | Path,
     gt: str | Path | None,
     out: str | Path,
+    train_gt: str | Path | None = None,
     features: str = "orb",
     vocab: str | None = None,
     vocab_orb: str | None = None,
     vocab_hgcn: str | None = None,
     cfg: FabmapConfig | None = None,
-    fabmap_threshold: float = DEFAULT_FABMAP_THRESHOLD,
-    bow_threshold: float = DEFAULT_BOW_THRESHOLD,
-    stride: int = 1,
+    fabmap_threshold: float | None = None,
+    bow_threshold: float | None = None,
+    stride: int | None = None,
+    every_s: float | None = None,
+    window_s: float | None = None,
     limit: int | None = None,
     n_features: int = 1000,
     levels: int | None = None,
     memory_limit_mb: float | None = None,
-) -> tuple[list[LcdResult], list[Path]]:
+) -> LcdRun:
     """``orbslam-hgcn lcd``: files in, comparison table and figures out.
 
+    Both sequences are sampled to about one image per distinct view unless ``stride`` or
+    ``every_s`` say otherwise, and each gets an exclusion window from its ground truth (or
+    ``cfg.min_gap`` images when positive, or ``window_s`` seconds); see
+    :mod:`orbslam_hgcn.placerec.window`. Thresholds not given are fitted on the training
+    sequence when it has a loop ground truth (``train_gt``, default TRAIN/loop_gt.npy).
     Inputs are checked (sequences, ground truth and its size, method names) before any
     vocabulary is loaded or feature extracted.
     """
-    from orbslam_hgcn.placerec.data import ImageSource
-
+    from orbslam_hgcn.placerec.experiment import prepare_sequence, warn_hidden_loops, write_image_list
     from orbslam_hgcn.placerec.sequence import check_config
 
     cfg = check_config(cfg or FabmapConfig())
     methods = parse_methods(method)
-    test_src = ImageSource(test, stride=stride, limit=limit)
-    train_src = ImageSource(train, stride=stride, limit=limit)
     gt_path = Path(gt) if gt is not None else Path(test) / "loop_gt.npy"
     if gt is None and not gt_path.is_file():
         raise OrbslamError(f"{test}: no --gt given and no loop_gt.npy in the test folder")
-    gt_mat = ground_truth_for(gt_path, test_src)
+    train_gt_path = Path(train_gt) if train_gt is not None else Path(train) / "loop_gt.npy"
+    if train_gt is None and not train_gt_path.is_file():
+        train_gt_path = None
+    fixed_gap = cfg.min_gap if cfg.min_gap > 0 else None
+    opts = dict(stride=stride, every_s=every_s, limit=limit, min_gap=fixed_gap, window_s=window_s)
+    test_prep = prepare_sequence(test, gt_path, name="test", **opts)
+    train_prep = prepare_sequence(train, train_gt_path, name="training", **opts)
+    lines = []
+    for name, prep in (("test", test_prep), ("train", train_prep)):
+        lines.append(f"{name}: {len(prep.source)} of {prep.source.total} images ({prep.sampling.how}); "
+                     f"images_{name}.txt lists them")
+        if prep.gt is not None:
+            lines.append(f"{name}: {int(prep.gt.any(axis=1).sum())} images revisit an earlier one "
+                         f"({prep.visit_pairs} true pairs within one continuous visit are not loops)")
+        if prep.window is not None:
+            lines.append(f"{name}: exclusion window {prep.window.describe()}")
+        warning = warn_hidden_loops(name, prep)
+        if warning:
+            log.warning("%s", warning)
+    train_gt_mat = train_prep.gt
+    if train_gt_mat is not None and not (train_gt_mat & candidate_mask(len(train_gt_mat), train_prep.window.gap)).any():
+        train_gt_mat = None  # no loop outside the window: nothing to fit a threshold on
+    if train_gt_mat is None:
+        why = "no loop ground truth" if train_prep.gt is None else "no ground-truth loop outside the window"
+        lines.append(f"train: {why} ({Path(train) / 'loop_gt.npy'} or --train-gt): thresholds not "
+                     "given are the fixed defaults")
     describer = Describer(features, n_features)
     vocabularies = load_vocabularies(methods, vocab, vocab_orb, vocab_hgcn, levels)
-    results = run_lcd(methods, train_src, test_src, gt_mat, vocabularies, describer, cfg,
+    run_cfg = dataclasses.replace(cfg, min_gap=test_prep.window.gap)
+    results = run_lcd(methods, train_prep.source, test_prep.source, test_prep.gt, vocabularies, describer, run_cfg,
                       fabmap_threshold=fabmap_threshold, bow_threshold=bow_threshold,
+                      train_gt=train_gt_mat, train_gap=train_prep.window.gap if train_prep.window else None,
                       memory_limit_mb=memory_limit_mb)
     extra = {
-        "train": str(train), "test": str(test), "ground_truth": str(gt_path), "features": features,
-        "stride": stride, "levels": levels, "n_train": len(train_src), "n_test": len(test_src),
+        "train": str(train), "test": str(test), "ground_truth": str(gt_path),
+        "train_ground_truth": str(train_gt_path) if train_gt_path else None, "features": features,
+        "stride": stride, "every_s": every_s, "levels": levels,
+        "n_train": len(train_prep.source), "n_test": len(test_prep.source),
+        "sampling": {"train": train_prep.sampling.how, "test": test_prep.sampling.how},
+        "window": {name: {"images": p.window.gap, "seconds": p.window.seconds, "source": p.window.source}
+                   for name, p in (("train", train_prep), ("test", test_prep)) if p.window is not None},
+        "images": {"train": train_prep.source.indices, "test": test_prep.source.indices},
         "vocabularies": {m: repr(v) for m, v in vocabularies.items()},
-        "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
+        "config": {k: getattr(run_cfg, k) for k in run_cfg.__dataclass_fields__},
     }
-    paths = write_outputs(results, gt_mat, out, extra)
-    return results, paths
+    paths = write_outputs(results, test_prep.gt, out, extra)
+    paths += [write_image_list(Path(out) / f"images_{name}.txt", p)
+              for name, p in (("test", test_prep), ("train", train_prep))]
+    return LcdRun(results, paths, lines)

@@ -151,6 +151,25 @@ def pr_curve(scores: np.ndarray, gt: np.ndarray, min_gap: int = 1, *, floor: flo
     return PRCurve(thr, precision.astype(np.float64), np.asarray(recall, dtype=np.float64), n_pos)
 
 
+def full_precision_threshold(scores: np.ndarray, gt: np.ndarray, min_gap: int = 1, *, floor: float = 0.0) -> float:
+    """The acceptance threshold with the highest recall at 100% precision on ``scores``.
+
+    It is the lowest best-match score of a correct match that ranks above every wrong best
+    match (scores at or below ``floor`` are never accepted, as in :func:`pr_curve`), so every
+    match it accepts on these scores is right. When no correct match outranks the wrong
+    ones, it lies just above the highest best-match score: nothing is accepted.
+    """
+    score, correct, _ = decisions(scores, gt, min_gap)
+    keep = np.isfinite(score) & (score > floor)
+    s, c = score[keep], correct[keep]
+    wrong = s[~c].max() if (~c).any() else -np.inf
+    good = s[c & (s > wrong)]
+    if len(good):
+        return float(good.min())
+    top = s.max() if len(s) else floor
+    return float(np.nextafter(max(top, floor), np.inf))
+
+
 @dataclass(frozen=True)
 class DetectorScore:
     """Summary of one detector: recall/accuracy at a threshold, recall@100%P and AUC."""
@@ -179,15 +198,22 @@ def score_detector(
     min_gap: int = 1,
     *,
     log_scores: np.ndarray | None = None,
+    threshold_is_log: bool = False,
 ) -> tuple[DetectorScore, PRCurve]:
     """Everything the comparison table and plots need for one detector.
 
     log_scores: (n, n) log of ``scores`` where the detector has it (FAB-MAP's log
     posteriors); decisions are then taken on it, so that posteriors too small for float64
     (below about 1e-308) still rank. The curve's thresholds are given as probabilities.
+    threshold_is_log: ``threshold`` is a log-probability (with ``log_scores``), as
+    :func:`full_precision_threshold` finds it on them.
     """
     if log_scores is not None:
-        counts = confusion_counts(log_scores, gt, float(np.log(threshold)) if threshold > 0 else -np.inf, min_gap)
+        if threshold_is_log:
+            log_thr, threshold = float(threshold), float(np.exp(threshold))
+        else:
+            log_thr = float(np.log(threshold)) if threshold > 0 else -np.inf
+        counts = confusion_counts(log_scores, gt, log_thr, min_gap)
         counts = Counts(float(threshold), counts.tp, counts.fp, counts.fn, counts.tn)
         curve = pr_curve(log_scores, gt, min_gap, floor=-np.inf)
         curve = PRCurve(np.exp(curve.thresholds), curve.precision, curve.recall, curve.n_positive)

@@ -38,7 +38,7 @@ def check_config(cfg: FabmapConfig) -> FabmapConfig:
         "motion_bias": not 0.0 <= cfg.motion_bias <= 1.0,
         "prior_spread": not 0.0 <= cfg.prior_spread <= 1.0,
         "smoothing": not 0.0 < cfg.smoothing < 0.5,
-        "min_gap": cfg.min_gap < 1,
+        "min_gap": cfg.min_gap < 0,
         "num_samples": cfg.num_samples < 1,
     }
     for key, bad in problems.items():

@@ -114,6 +114,7 @@ class SynthOptions:
     exposure_settle: int = 4  # frames the auto-exposure takes to undo a step (to 5 %)
     jpeg_quality: int = 0  # JPEG encode/decode at this quality (1-100; 0: none)
     fog: float = 0.0  # fog stretches: contrast lost at the scene's reference depth (0..1)
+    laps: int = 1  # the generated loop: times round the desk, each lap beside the others
 
     @property
     def camera(self) -> PinholeCamera:
@@ -144,6 +145,8 @@ class SynthOptions:
             raise ConfigError(f"duration must be positive, not {self.duration}")
         if self.fps <= 0 or self.noise < 0 or self.exposure_drift < 0 or not 0 < self.shutter <= 1:
             raise ConfigError("fps must be positive, noise and exposure drift non-negative, shutter in (0, 1]")
+        if self.laps < 1 or (self.laps > 1 and (self.trajectory != "loop" or self.scene != "office")):
+            raise ConfigError(f"laps must be at least 1, and more than one only for the office loop, not {self.laps}")
         if self.texel_scale <= 0:
             raise ConfigError(f"texel_scale must be positive, not {self.texel_scale}")
 
@@ -216,10 +219,10 @@ def build_sequence(options: SynthOptions):
         info.update({"kind": "replay", "source": str(options.gt), "source_poses": len(gt)})
         return scene, path, stamps, info
     n = _frame_count(options, 30.0)
-    period = max(n / options.fps, MIN_LOOP_S)  # shorter sequences: the start of a walkable loop
+    period = max(n / options.fps / options.laps, MIN_LOOP_S)  # shorter laps: the start of a walkable loop
     desk_rng = np.random.default_rng([int(options.scene_seed), 5])
     desk = DeskSpec(float(desk_rng.uniform(1.4, 1.8)), float(desk_rng.uniform(0.75, 0.9)), 0.74)
-    loop = LoopPath(desk, period, options.scene_seed)
+    loop = LoopPath(desk, period, options.scene_seed, laps=options.laps)
     samples = loop(np.linspace(0.0, period, 400))[:, :3, 3]
     lo, hi = samples[:, :2].min(0) - 1.5, samples[:, :2].max(0) + 1.5
     scene = build_scene(options.scene_seed, desk, (lo[0], hi[0], lo[1], hi[1], 2.7), keep_out=samples)

@@ -53,10 +53,12 @@ class LoopPath:
     The camera walks once round an ellipse whose semi-axes clear the desk by ``clearance``
     metres, at about ``eye_height`` metres, looking at the desk top with slowly wandering
     gaze; every wobble is an integer harmonic of the loop phase, so pose(period) == pose(0).
+    With ``laps`` > 1, ``period`` is one lap and the path drifts from lap to lap (it closes
+    after the last one).
     """
 
     def __init__(self, desk: DeskSpec, period: float, seed: int, clearance: float = 1.05,
-                 eye_height: float = 1.45):
+                 eye_height: float = 1.45, laps: int = 1):
         rng = np.random.default_rng([int(seed), 11])
         self.period = float(period)
         self.a = desk.length / 2 + clearance
@@ -79,6 +81,15 @@ class LoopPath:
         self.roll = harmonics([1, 2, 3, 5], np.radians(4.0))
         self.tremor = harmonics(np.arange(40, 56), 0.002)  # m, hand shake
         self.tremor_rot = harmonics(np.arange(40, 56), np.radians(0.15))
+        # Several laps never retrace one path: slow drifts of the radius, height and gaze with
+        # a period of all the laps (sub-harmonics of the loop phase), so the path closes after
+        # the last lap and each lap passes 0.1-0.2 m and a few degrees beside the others.
+        self.laps = int(laps)
+        lap_rng = np.random.default_rng([int(seed), 12])
+        sub = np.arange(1, self.laps) / self.laps  # empty for one lap
+        self.lap_radius = (sub, np.full(len(sub), 0.08), lap_rng.uniform(0, 2 * np.pi, len(sub)))
+        self.lap_height = (sub, np.full(len(sub), 0.10), lap_rng.uniform(0, 2 * np.pi, len(sub)))
+        self.lap_gaze = (sub, np.full(len(sub), 0.20), lap_rng.uniform(0, 2 * np.pi, len(sub)))
 
     @staticmethod
     def _sum(h, phi: np.ndarray) -> np.ndarray:
@@ -94,11 +105,11 @@ class LoopPath:
     def __call__(self, t: np.ndarray) -> np.ndarray:
         """(N, 4, 4) scene-frame poses T_sc at times t (N,) seconds."""
         phi = self.phase(np.atleast_1d(t))
-        r = 1.0 + self._sum(self.radius, phi)
+        r = 1.0 + self._sum(self.radius, phi) + self._sum(self.lap_radius, phi)
         pos = np.stack([self.a * r * np.cos(phi), self.b * r * np.sin(phi),
-                        self.eye_height + self._sum(self.height, phi)], axis=1)
+                        self.eye_height + self._sum(self.height, phi) + self._sum(self.lap_height, phi)], axis=1)
         pos += np.stack([self._sum(self.tremor, phi + k) for k in range(3)], axis=1)
-        target = np.stack([self._sum(self.gaze_x, phi), self._sum(self.gaze_y, phi),
+        target = np.stack([self._sum(self.gaze_x, phi) + self._sum(self.lap_gaze, phi), self._sum(self.gaze_y, phi),
                            self.target_height + self._sum(self.gaze_z, phi)], axis=1)
         target += np.stack([self._sum(self.tremor_rot, phi + k) for k in range(3, 6)], axis=1) * \
             np.linalg.norm(target - pos, axis=1, keepdims=True)
