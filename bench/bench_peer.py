@@ -503,7 +503,7 @@ def ours_features(args: argparse.Namespace) -> int | None:
     """ORB features per image that ``orbslam-hgcn run`` will use (its --config's orb section)."""
     from orbslam_hgcn.config import resolve_config
     from orbslam_hgcn.errors import OrbslamError
-    from orbslam_hgcn.pipeline.system import Configs
+    from orbslam_hgcn.runtime.system import Configs
 
     config = args.config
     extra = shlex.split(args.ours_args)

@@ -150,7 +150,7 @@ def run_one(
     """One run in this process; returns its figures."""
     from orbslam_hgcn.datasets import open_sequence
     from orbslam_hgcn.pipeline.run import open_vocabulary, trajectory_ate
-    from orbslam_hgcn.pipeline.system import Configs, System
+    from orbslam_hgcn.runtime.system import Configs, System
 
     base = open_sequence("tum", path)
     n = len(base) if max_frames is None else min(len(base), max_frames)

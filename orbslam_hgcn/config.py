@@ -15,7 +15,7 @@ Camera files (the shipped ones in ``orbslam_hgcn/configs/*.yaml``) use one flat 
 
 The same keys may instead sit under a ``camera:`` section of a larger file. Every value is
 validated on load; an error names the file and the key. A file may also carry stage
-sections (``orb:``, ``tracking:``, ...; see :class:`~orbslam_hgcn.pipeline.system.Configs`):
+sections (``orb:``, ``tracking:``, ...; see :class:`~orbslam_hgcn.runtime.system.Configs`):
 each shipped camera carries the settings ORB-SLAM's example files use for it.
 
 Stage configs are frozen dataclasses defined below, each with its defaults beside their

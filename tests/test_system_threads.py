@@ -30,7 +30,7 @@ from orbslam_hgcn.map.window import apply_window, local_window
 from orbslam_hgcn.pipeline.extraction import ExtractionError, ExtractionProcess
 from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
 from orbslam_hgcn.pipeline.stages import ThreadedStages
-from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.runtime.system import Configs, System
 from orbslam_hgcn.pipeline.worker import WorkerError
 
 from backend_fixtures import drifted_loop, make_scene, perturb_pose

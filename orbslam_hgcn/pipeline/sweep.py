@@ -147,7 +147,7 @@ def _vocabulary_ok(v: str, base: Path) -> str | None:
 
 def _check_overrides(raw: Any, mpath: Path, lines: _Lines, *keys: str | int) -> dict[str, Any]:
     """``section.key: value`` pairs checked against the stage configs' dataclasses."""
-    from orbslam_hgcn.pipeline.system import Configs
+    from orbslam_hgcn.runtime.system import Configs
 
     loc = where(mpath, lines.line(*keys))
     if raw is None:
