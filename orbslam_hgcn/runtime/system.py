@@ -3,7 +3,7 @@ loop closing, in order or in worker threads.
 
 :class:`System` is the only place that knows every stage. The stages meet only here: the
 tracker returns its new keyframes, :meth:`System._on_keyframe` hands each to a stage runner
-(:mod:`orbslam_hgcn.pipeline.stages`), which passes it to the local mapper and the keyframes
+(:mod:`orbslam_hgcn.runtime.stages`), which passes it to the local mapper and the keyframes
 it keeps to the loop closer, if one is plugged in (any object with ``process(keyframe)``).
 
 Sequential mode (``ThreadsConfig.sequential``, the default of the class): a keyframe is
@@ -75,7 +75,7 @@ from orbslam_hgcn.pipeline.results import (
     summary_ms,
     write_outputs,
 )
-from orbslam_hgcn.pipeline.stages import SequentialStages, ThreadedStages
+from orbslam_hgcn.runtime.stages import SequentialStages, ThreadedStages
 from orbslam_hgcn.tracking.relocalization import Relocalizer
 from orbslam_hgcn.tracking.tracker import Tracker, TrackingState, TrackResult
 from orbslam_hgcn.trajectory import Trajectory, write_tum
