@@ -31,7 +31,7 @@ from orbslam_hgcn.pipeline.extraction import ExtractionError, ExtractionProcess
 from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
 from orbslam_hgcn.runtime.stages import ThreadedStages
 from orbslam_hgcn.runtime.system import Configs, System
-from orbslam_hgcn.pipeline.worker import WorkerError
+from orbslam_hgcn.runtime.worker import WorkerError
 
 from backend_fixtures import drifted_loop, make_scene, perturb_pose
 

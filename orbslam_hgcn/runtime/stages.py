@@ -39,7 +39,7 @@ from typing import Any
 
 from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver
 from orbslam_hgcn.map import KeyFrame
-from orbslam_hgcn.pipeline.worker import Worker, WorkerError
+from orbslam_hgcn.runtime.worker import Worker, WorkerError
 
 log = logging.getLogger(__name__)
 

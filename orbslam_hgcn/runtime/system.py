@@ -20,7 +20,7 @@ On a machine with few cores the real-time path goes first: the BA processes and 
 threads run at a lower CPU priority (``threads.solver_nice``, ``threads.worker_nice``).
 Threads and processes live from the first frame to :meth:`System.close`,
 which :meth:`System.run` calls at its end (also on Ctrl-C or an error); a stage's exception
-is raised in the caller's thread as a :class:`~orbslam_hgcn.pipeline.worker.WorkerError`.
+is raised in the caller's thread as a :class:`~orbslam_hgcn.runtime.worker.WorkerError`.
 """
 
 from __future__ import annotations
