@@ -27,7 +27,7 @@ from orbslam_hgcn.evaluation.ate import evaluate
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.map import check_invariants
 from orbslam_hgcn.map.window import apply_window, local_window
-from orbslam_hgcn.pipeline.extraction import ExtractionError, ExtractionProcess
+from orbslam_hgcn.runtime.extraction import ExtractionError, ExtractionProcess
 from orbslam_hgcn.runtime.locks import TrackingFirstLock, first
 from orbslam_hgcn.runtime.stages import ThreadedStages
 from orbslam_hgcn.runtime.system import Configs, System
