@@ -68,7 +68,7 @@ from orbslam_hgcn.mapping.local_mapper import LocalMapper
 from orbslam_hgcn.match import matching, projection_search
 from orbslam_hgcn.runtime.extraction import ExtractionError, ExtractionProcess, warm_up_extractors
 from orbslam_hgcn.runtime.locks import TrackingFirstLock, first
-from orbslam_hgcn.pipeline.results import (
+from orbslam_hgcn.runtime.results import (
     camera_trajectory,
     frame_counts,
     keyframe_trajectory,
