@@ -33,7 +33,7 @@ from pathlib import Path
 
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
-from orbslam_hgcn.pipeline.run import trajectory_ate
+from orbslam_hgcn.app.run import trajectory_ate
 from orbslam_hgcn.runtime.system import Configs, System
 
 REPO = Path(__file__).resolve().parents[1]

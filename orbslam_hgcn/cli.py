@@ -377,7 +377,7 @@ def _terminate(signum: int, frame: object) -> None:
 def _run_run(args: argparse.Namespace) -> int:
     import signal
 
-    from orbslam_hgcn.pipeline.run import format_report, run_dataset
+    from orbslam_hgcn.app.run import format_report, run_dataset
 
     # SIGTERM ends a run as Ctrl-C does: the results so far are written.
     previous = signal.signal(signal.SIGTERM, _terminate)

@@ -334,7 +334,7 @@ def test_system_closes_a_small_synthetic_loop(tmp_path_factory):
     between the two visits and the keyframe ATE falls when it is corrected. Needs the
     shipped HGCN vocabulary; renders 600 frames and runs SLAM on them (minutes)."""
     from orbslam_hgcn.datasets import open_sequence
-    from orbslam_hgcn.pipeline.run import trajectory_ate
+    from orbslam_hgcn.app.run import trajectory_ate
     from orbslam_hgcn.runtime.system import System
     from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
     from orbslam_hgcn.vocabulary import load_vocabulary

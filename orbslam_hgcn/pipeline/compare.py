@@ -1,7 +1,7 @@
 """Compare visual vocabularies end to end: the ``orbslam-hgcn compare`` command.
 
 Runs the whole system (loop closing on) N times per vocabulary over one dataset through
-:func:`~orbslam_hgcn.pipeline.run.run_dataset`, each run in its own folder
+:func:`~orbslam_hgcn.app.run.run_dataset`, each run in its own folder
 ``OUT/<vocab>/run<i>``, and summarises per vocabulary: keyframe ATE after Sim(3)
 alignment (Umeyama 1991; median, min, max over the runs), loops closed, frames lost and
 frames per second. Writes ``OUT/compare.md`` (Markdown tables), ``OUT/compare.json`` and
@@ -291,7 +291,7 @@ def run_comparison(
     import inspect
 
     from orbslam_hgcn.evaluation.plots import box_plot
-    from orbslam_hgcn.pipeline.run import run_dataset
+    from orbslam_hgcn.app.run import run_dataset
 
     if runs < 1:
         raise ConfigError(f"--runs must be at least 1, found {runs}")
