@@ -331,7 +331,7 @@ def _add_sequential_argument(p: argparse.ArgumentParser) -> None:
 
 @subcommand
 def _add_run(sub: argparse._SubParsersAction) -> None:
-    from orbslam_hgcn.pipeline.ending import exit_status_help
+    from orbslam_hgcn.app.ending import exit_status_help
 
     p = sub.add_parser(
         "run",

@@ -9,7 +9,7 @@ A run never loses what it computed: whatever ends it (an unreadable frame with
 ``--on-bad-frame stop``, a worker thread or child process failing, Ctrl-C, SIGTERM, a bug)
 the results of the frames processed are written, ``stats.json`` says ``"complete": false``
 and why (``"end"``), and the command exits with the status of that ending
-(:data:`~orbslam_hgcn.pipeline.ending.EXIT_STATUS`). The output folder is checked before the first frame.
+(:data:`~orbslam_hgcn.app.ending.EXIT_STATUS`). The output folder is checked before the first frame.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from orbslam_hgcn.config import dataset_settings, load_camera, load_yaml, resolv
 from orbslam_hgcn.datasets import detect_kind, open_sequence
 from orbslam_hgcn.errors import FrameError, OrbslamError, StageError, VocabularyError
 from orbslam_hgcn.geometry.camera import PinholeCamera
-from orbslam_hgcn.pipeline.ending import RunEnd
+from orbslam_hgcn.app.ending import RunEnd
 from orbslam_hgcn.runtime.results import check_output_file, check_output_folder
 from orbslam_hgcn.runtime.system import TERMINATED, Configs, System
 from orbslam_hgcn.trajectory import Trajectory
