@@ -150,7 +150,7 @@ def run_dataset(
     ``["connect", "HOST:PORT"]``) to visualise the run in rerun as it goes
     (:mod:`orbslam_hgcn.viz.live`); None: no visualisation.
 
-    ``load_map``: start from a saved map (:mod:`orbslam_hgcn.pipeline.mapfile`),
+    ``load_map``: start from a saved map (:mod:`orbslam_hgcn.app.mapfile`),
     relocalising on it first; ``vocab`` then defaults to the map's vocabulary.
     ``localization``: with ``load_map``, track without changing the map. ``save_map``:
     write the map at the end (also listed in ``paths`` as ``map``).
@@ -179,7 +179,7 @@ def run_dataset(
     if localization and load_map is None:
         raise OrbslamError("--localization needs a saved map: --load-map FILE")
     if load_map is not None:
-        from orbslam_hgcn.pipeline.mapfile import install_map, load_map as read_saved_map, map_vocabulary_name
+        from orbslam_hgcn.app.mapfile import install_map, load_map as read_saved_map, map_vocabulary_name
 
         vocab = vocab or map_vocabulary_name(load_map)  # by default the vocabulary the map was built with
     vocabulary = open_vocabulary(vocab, loop_closing or load_map is not None)
@@ -251,7 +251,7 @@ def run_dataset(
     except OSError as exc:
         raise OrbslamError(f"{out}: cannot write the results ({exc.strerror or exc})") from None
     if save_map is not None:
-        from orbslam_hgcn.pipeline.mapfile import save_system_map
+        from orbslam_hgcn.app.mapfile import save_system_map
 
         try:
             paths["map"] = save_system_map(save_map, system, vocab)
