@@ -517,7 +517,7 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_compare(args: argparse.Namespace) -> int:
-    from orbslam_hgcn.pipeline.compare import describe_run, format_markdown, run_comparison
+    from orbslam_hgcn.app.compare import describe_run, format_markdown, run_comparison
 
     comp = run_comparison(
         args.path, args.out, kind=args.dataset, config=args.config, runs=args.runs, vocabs=args.vocabs,

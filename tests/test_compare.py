@@ -106,7 +106,7 @@ def test_compare_marks_runs_with_untracked_frames_or_resets_as_failed(tmp_path):
     ATE shown but left out of the vocabulary's figures."""
     from types import SimpleNamespace
 
-    from orbslam_hgcn.pipeline.compare import run_comparison
+    from orbslam_hgcn.app.compare import run_comparison
 
     outcomes = {1: (100, 0, 0.010), 2: (85, 0, 0.002), 3: (100, 1, 0.003), 4: (91, 0, 0.020)}
 

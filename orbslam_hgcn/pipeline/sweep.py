@@ -32,7 +32,7 @@ The tables (``OUT/sweep.md``, ``OUT/sweep.json``) hold one record per cell (sequ
 vocabulary, parameter set): runs, runs that count, failed runs, keyframe ATE after Sim(3)
 alignment (median, min, max over the runs that count, metres in the JSON), share of
 frames tracked and frames per second (medians), and every run. A run is marked failed as
-``compare`` marks it (:func:`~orbslam_hgcn.pipeline.compare.outcome_from_stats`: more than
+``compare`` marks it (:func:`~orbslam_hgcn.app.compare.outcome_from_stats`: more than
 10% of its frames without a pose, or a map reset): flagged X, left out of the figures.
 One box plot of the ATE per sequence: ``OUT/sweep_ate_<sequence>.png``.
 """
@@ -58,7 +58,7 @@ import yaml
 
 from orbslam_hgcn.config import load_yaml, resolve_config, section_from_yaml
 from orbslam_hgcn.errors import ConfigError, where
-from orbslam_hgcn.pipeline.compare import MAX_UNTRACKED_SHARE, RunOutcome, outcome_from_stats, run_status, summarise
+from orbslam_hgcn.app.compare import MAX_UNTRACKED_SHARE, RunOutcome, outcome_from_stats, run_status, summarise
 from orbslam_hgcn.pipeline.engine import Engine, TaskFailed
 
 log = logging.getLogger(__name__)
