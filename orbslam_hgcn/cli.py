@@ -592,7 +592,7 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_sweep(args: argparse.Namespace) -> int:
-    from orbslam_hgcn.pipeline.sweep import run_sweep
+    from orbslam_hgcn.app.sweep import run_sweep
 
     sw = run_sweep(args.manifest, args.out, jobs=args.jobs, address=args.address,
                    use_ray=False if args.no_ray else None, progress=not args.no_progress)

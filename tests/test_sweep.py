@@ -12,7 +12,7 @@ import ray
 import yaml
 
 from orbslam_hgcn.cli import main
-from orbslam_hgcn.pipeline import sweep
+from orbslam_hgcn.app import sweep
 from orbslam_hgcn.pipeline.demo import demo_sequence
 
 

@@ -227,7 +227,7 @@ def _runs_on_engine(path, out, kind, config, runs, vocabs, max_frames, sequentia
     """The runs of a comparison as processes on the sweep's engine: (outcomes in table
     order, dataset name, how the stages ran, interrupted)."""
     from orbslam_hgcn.pipeline.engine import Engine
-    from orbslam_hgcn.pipeline.sweep import run_argv, run_processes
+    from orbslam_hgcn.app.sweep import run_argv, run_processes
 
     if config is not None:
         from orbslam_hgcn.config import resolve_config
@@ -284,7 +284,7 @@ def run_comparison(
     ``threads.speed``; see :func:`run_dataset`). run_fn: replaces
     :func:`run_dataset` (same arguments), for tests. on_run: called with each run's
     outcome as soon as it is known (progress printing). jobs, address: make each run an
-    ``orbslam-hgcn run`` process on the sweep's engine (:mod:`orbslam_hgcn.pipeline.sweep`:
+    ``orbslam-hgcn run`` process on the sweep's engine (:mod:`orbslam_hgcn.app.sweep`:
     a local Ray instance with ``jobs`` runs at a time, the Ray cluster at ``address``, or in
     order without Ray), the same folders and tables; a killed run is made once more.
     """
