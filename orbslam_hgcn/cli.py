@@ -559,7 +559,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from orbslam_hgcn.pipeline.demo import run_demo
+    from orbslam_hgcn.app.demo import run_demo
 
     rerun = [] if args.no_rerun else args.rerun
     comp = run_demo(out=args.out, frames=args.frames, runs=args.runs, cache=args.cache, rerun=rerun,

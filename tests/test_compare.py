@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from orbslam_hgcn.cli import main
-from orbslam_hgcn.pipeline.demo import demo_sequence
+from orbslam_hgcn.app.demo import demo_sequence
 
 FRAMES = 30
 

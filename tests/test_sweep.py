@@ -13,7 +13,7 @@ import yaml
 
 from orbslam_hgcn.cli import main
 from orbslam_hgcn.app import sweep
-from orbslam_hgcn.pipeline.demo import demo_sequence
+from orbslam_hgcn.app.demo import demo_sequence
 
 
 @pytest.fixture(scope="module")
