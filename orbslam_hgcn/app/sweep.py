@@ -21,7 +21,7 @@ runs; an error names the manifest's line.
 Each run is one ``orbslam-hgcn run`` in its own process, with its results (trajectories,
 stats.json with the ATE, run.log) in ``OUT/<sequence>/<vocabulary>/<params>/run<k>/``
 (``<params>`` is ``default`` without a parameter axis). The runs go through an
-:class:`~orbslam_hgcn.pipeline.engine.Engine`: a local Ray instance with ``jobs`` runs at a
+:class:`~orbslam_hgcn.engine.Engine`: a local Ray instance with ``jobs`` runs at a
 time, an existing Ray cluster, or, without Ray, in order. A run whose stats.json says it
 completed is not run again (a sweep resumes where it stopped); a run whose process is
 killed (a signal) is run once more and then recorded as failed; any other failure is
@@ -59,7 +59,7 @@ import yaml
 from orbslam_hgcn.config import load_yaml, resolve_config, section_from_yaml
 from orbslam_hgcn.errors import ConfigError, where
 from orbslam_hgcn.app.compare import MAX_UNTRACKED_SHARE, RunOutcome, outcome_from_stats, run_status, summarise
-from orbslam_hgcn.pipeline.engine import Engine, TaskFailed
+from orbslam_hgcn.engine import Engine, TaskFailed
 
 log = logging.getLogger(__name__)
 

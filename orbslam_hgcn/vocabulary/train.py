@@ -30,7 +30,7 @@ from orbslam_hgcn.config import HgcnTrainConfig, ORBConfig, TreeTrainConfig
 from orbslam_hgcn.datasets.base import IMAGE_SUFFIXES
 from orbslam_hgcn.errors import DatasetError, OrbslamError, VocabularyError
 from orbslam_hgcn.npzfile import atomic_save_npz, read_npz
-from orbslam_hgcn.pipeline.engine import Engine
+from orbslam_hgcn.engine import Engine
 from orbslam_hgcn.vocabulary.base import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -285,7 +285,7 @@ def train_from_images(
     descriptors share their seed label (see :mod:`orbslam_hgcn.vocabulary.tracks`).
     device: the torch device of HGCN training (None or ``auto``: a GPU when torch sees one).
     jobs, address: extract the descriptors in shards on Ray (a local instance with ``jobs``
-    CPUs, or the cluster at ``address``; :mod:`orbslam_hgcn.pipeline.engine`), when
+    CPUs, or the cluster at ``address``; :mod:`orbslam_hgcn.engine`), when
     ``jobs`` > 1 or ``address`` is given; else in this process.
     """
     out = Path(out)
