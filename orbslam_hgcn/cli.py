@@ -449,7 +449,7 @@ def _run_vocab_train(args: argparse.Namespace) -> int:
     import dataclasses
 
     from orbslam_hgcn.config import HgcnTrainConfig, TreeTrainConfig, load_yaml, section_from_yaml
-    from orbslam_hgcn.vocabulary.train import train_from_images
+    from orbslam_hgcn.vocabulary.training.train import train_from_images
 
     data = load_yaml(args.config) if args.config else {}
     tree = section_from_yaml(TreeTrainConfig, data, args.config or "", "vocab_tree")

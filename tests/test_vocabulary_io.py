@@ -9,7 +9,7 @@ import vocab_fixtures as vf
 from orbslam_hgcn import cli
 from orbslam_hgcn.errors import VocabularyError
 from orbslam_hgcn.vocabulary import load_vocabulary
-from orbslam_hgcn.vocabulary import train as train_mod
+from orbslam_hgcn.vocabulary.training import train as train_mod
 from orbslam_hgcn.npzfile import atomic_save_npz
 from orbslam_hgcn.vocabulary.base import FORMAT_VERSION
 from orbslam_hgcn.vocabulary.flat import KMeansVocabulary
@@ -247,7 +247,7 @@ def test_image_sources(tmp_path):
     import shutil
 
     from orbslam_hgcn.errors import DatasetError
-    from orbslam_hgcn.vocabulary.train import open_image_source, select_images
+    from orbslam_hgcn.vocabulary.training.train import open_image_source, select_images
 
     nested = tmp_path / "a" / "b"
     nested.mkdir(parents=True)
