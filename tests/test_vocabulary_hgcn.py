@@ -245,7 +245,7 @@ def test_trained_hgcn_vocabulary_quantiser():
 
 @pytest.mark.skipif(not vf.available(), reason="real sample data not found")
 def test_tracks_from_consecutive_real_frames():
-    from orbslam_hgcn.vocabulary.tracks import build_tracks, match_pair
+    from orbslam_hgcn.vocabulary.training.tracks import build_tracks, match_pair
 
     kps = [vf.keypoints("tum", i) for i in range(4, 8)]  # 33 ms apart: nearly the same view
     a, b = match_pair(kps[0].desc, kps[1].desc, kps[0].uv_raw, kps[1].uv_raw)
@@ -271,7 +271,7 @@ def test_tracks_of_float_descriptors():
     """SIFT (float) descriptors are matched by Euclidean distance under the same rules."""
     import cv2
 
-    from orbslam_hgcn.vocabulary.tracks import match_pair
+    from orbslam_hgcn.vocabulary.training.tracks import match_pair
 
     sift = cv2.SIFT_create(nfeatures=800)
 

@@ -282,7 +282,7 @@ def train_from_images(
     """Extract descriptors from image sources, train a vocabulary and save it to ``out``.
 
     tracks: (hgcn) match consecutive images of each source into feature tracks whose
-    descriptors share their seed label (see :mod:`orbslam_hgcn.vocabulary.tracks`).
+    descriptors share their seed label (see :mod:`orbslam_hgcn.vocabulary.training.tracks`).
     device: the torch device of HGCN training (None or ``auto``: a GPU when torch sees one).
     jobs, address: extract the descriptors in shards on Ray (a local instance with ``jobs``
     CPUs, or the cluster at ``address``; :mod:`orbslam_hgcn.engine`), when
@@ -306,7 +306,7 @@ def train_from_images(
     t_extract = time.perf_counter() - t0
     track_ids = None
     if tracks and kind == "hgcn":
-        from orbslam_hgcn.vocabulary.tracks import build_tracks
+        from orbslam_hgcn.vocabulary.training.tracks import build_tracks
 
         track_ids = build_tracks(*data.per_image(), data.groups, progress=progress)
     t_tracks = time.perf_counter() - t0 - t_extract
