@@ -256,7 +256,7 @@ def test_vocab_train_extracts_in_shards_on_ray_and_trains_on_the_device_asked(re
     from orbslam_hgcn.errors import ConfigError
     from orbslam_hgcn.engine import Engine
     from orbslam_hgcn.vocabulary.training import train
-    from orbslam_hgcn.vocabulary.hgcn import training_device
+    from orbslam_hgcn.vocabulary.training.hgcn import training_device
 
     sources = [train.open_image_source(renders[1])]
     pairs = train.select_images(sources, 6)

@@ -19,7 +19,7 @@ from orbslam_hgcn.vocabulary.graph import (
     symmetric_adjacency,
     two_hop_blocks,
 )
-from orbslam_hgcn.vocabulary.hgcn import train_hgcn
+from orbslam_hgcn.vocabulary.training.hgcn import train_hgcn
 from orbslam_hgcn.vocabulary.hgcn_vocab import seed_labels
 
 

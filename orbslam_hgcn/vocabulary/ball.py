@@ -89,7 +89,7 @@ def hyp_linear(v: np.ndarray, weight: np.ndarray, bias: np.ndarray, c: float) ->
 
 @dataclass
 class BallNetwork:
-    """The trained layers of an HGCN (see :class:`orbslam_hgcn.vocabulary.hgcn.HGCN`).
+    """The trained layers of an HGCN (see :class:`orbslam_hgcn.vocabulary.training.hgcn.HGCN`).
 
     weights, biases: per layer, the neighbourhood path's (d_out, d_in) and (d_out,) arrays;
     self_weights, self_biases: the same for the residual self path (empty lists when the
