@@ -21,7 +21,7 @@ from orbslam_hgcn.loop.projection import search_by_sim3
 from orbslam_hgcn.loop.sim3_check import LoopMatch, compute_sim3, loop_neighbourhood
 from orbslam_hgcn.map import Frame, Map, check_invariants
 from orbslam_hgcn.map.window import global_window
-from orbslam_hgcn.vocabulary.database import KeyframeDatabase
+from orbslam_hgcn.map.database import KeyframeDatabase
 
 from loop_fixtures import (
     RingScene,

@@ -79,7 +79,7 @@ from orbslam_hgcn.runtime.stages import SequentialStages, ThreadedStages
 from orbslam_hgcn.tracking.relocalization import Relocalizer
 from orbslam_hgcn.tracking.tracker import Tracker, TrackingState, TrackResult
 from orbslam_hgcn.trajectory import Trajectory, write_tum
-from orbslam_hgcn.vocabulary.database import KeyframeDatabase
+from orbslam_hgcn.map.database import KeyframeDatabase
 
 log = logging.getLogger(__name__)
 
