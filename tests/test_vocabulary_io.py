@@ -39,7 +39,7 @@ def test_round_trip_gives_identical_output(saved):
         (b1, f1), (b2, f2) = vocab.transform(desc), back.transform(desc)
         assert b1 == b2 and len(b1) > 0
         assert f1.keys() == f2.keys() and all(np.array_equal(f1[k], f2[k]) for k in f1)
-    assert type(vocab).load(path).n_words == vocab.n_words
+    assert load_vocabulary(path, expected_kind=vocab.kind).n_words == vocab.n_words
 
 
 def _expect_error(path, match=None, **kw):
@@ -69,7 +69,7 @@ def test_damaged_files_raise_vocabulary_errors(saved, tmp_path):
     for cls in (HGCNVocabulary, TreeVocabulary, KMeansVocabulary):
         if cls.kind != vocab.kind:
             with pytest.raises(VocabularyError):
-                cls.load(path)
+                load_vocabulary(path, expected_kind=cls.kind)
 
 
 def _rewrite(path, out, **changes):
@@ -160,7 +160,7 @@ def test_zip_member_crc_is_checked(tmp_path):
 
 @pytest.mark.parametrize("name", ["orb", "hgcn", "kmeans", "orb10k"])
 def test_shipped_vocabularies(name):
-    from orbslam_hgcn.vocabulary.base import SHIPPED
+    from orbslam_hgcn.vocabulary.loading import SHIPPED
 
     path = SHIPPED[name]
     assert path.is_file() and path.stat().st_size < 50e6

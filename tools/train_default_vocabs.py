@@ -35,7 +35,7 @@ from pathlib import Path
 
 from orbslam_hgcn.config import HgcnTrainConfig, TreeTrainConfig
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
-from orbslam_hgcn.vocabulary.base import SHIPPED
+from orbslam_hgcn.vocabulary.loading import SHIPPED
 from orbslam_hgcn.vocabulary.training.tracks import build_tracks
 from orbslam_hgcn.vocabulary.training.train import extract_descriptors, open_image_source, select_images, train_vocabulary
 

@@ -136,7 +136,7 @@ class _Lines:
 
 def _vocabulary_ok(v: str, base: Path) -> str | None:
     """The vocabulary argument of a run (a shipped name, or an absolute file path), or None."""
-    from orbslam_hgcn.vocabulary.base import SHIPPED
+    from orbslam_hgcn.vocabulary.loading import SHIPPED
 
     if v in SHIPPED:
         return v

@@ -6,14 +6,9 @@ over BoW vectors is :mod:`orbslam_hgcn.map.database`; training is :mod:`.trainin
 ``load_vocabulary("hgcn")`` opens the shipped default.
 """
 
-from orbslam_hgcn.vocabulary.base import (
-    Vocabulary,
-    VocabularyMetadata,
-    default_vocabulary_path,
-    load_vocabulary,
-    open_vocabulary,
-)
+from orbslam_hgcn.vocabulary.base import Vocabulary, VocabularyMetadata
 from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector, l1_score
+from orbslam_hgcn.vocabulary.loading import default_vocabulary_path, load_vocabulary, open_vocabulary
 
 __all__ = [
     "BowVector",
