@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from orbslam_hgcn.backend.bundle_adjustment import as_problem
+from orbslam_hgcn.backend.problem import as_problem
 from orbslam_hgcn.backend.pose_graph import relative_sim3
 from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver, SolverError
 from orbslam_hgcn.cli import main

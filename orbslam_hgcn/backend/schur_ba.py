@@ -38,6 +38,7 @@ from collections.abc import Callable
 import numpy as np
 
 from orbslam_hgcn.backend.pose_only import se3_exp
+from orbslam_hgcn.backend.problem import BAResult, as_problem
 from orbslam_hgcn.backend.projection import reprojection_chi2
 from orbslam_hgcn.compiled import jit
 from orbslam_hgcn.config import BackendConfig
@@ -400,8 +401,6 @@ def schur_bundle_adjustment(
 ):
     """:func:`orbslam_hgcn.backend.bundle_adjustment.bundle_adjustment` (same arguments,
     same result type) solved by the compiled Schur-complement LM of this module."""
-    from orbslam_hgcn.backend.bundle_adjustment import BAResult, as_problem
-
     cfg = config or BackendConfig()
     p = as_problem(T_cw, fixed, points, obs_kf, obs_pt, uv, inv_sigma2, K)
     if len(p.fixed) != len(p.T_cw):
