@@ -12,7 +12,7 @@ import ray
 import yaml
 
 from orbslam_hgcn.cli import main
-from orbslam_hgcn.app import sweep
+from orbslam_hgcn.app import processes, sweep
 from orbslam_hgcn.app.demo import demo_sequence
 
 
@@ -61,7 +61,7 @@ def fake_run(tmp_path, monkeypatch):
     """RUN_PROGRAM replaced by FAKE_RUN; returns the file listing each process started."""
     script = tmp_path / "fake_run.py"
     script.write_text(FAKE_RUN)
-    monkeypatch.setattr(sweep, "RUN_PROGRAM", [sys.executable, str(script)])
+    monkeypatch.setattr(processes, "RUN_PROGRAM", [sys.executable, str(script)])
     return tmp_path / "starts.log"  # the sweeps write into tmp_path / "out"
 
 

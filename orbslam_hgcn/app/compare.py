@@ -29,7 +29,9 @@ from typing import Any
 
 import numpy as np
 
+from orbslam_hgcn.app.processes import run_argv, run_processes
 from orbslam_hgcn.config import ThreadsConfig
+from orbslam_hgcn.engine import Engine
 from orbslam_hgcn.errors import ConfigError, OrbslamError
 
 log = logging.getLogger(__name__)
@@ -226,9 +228,6 @@ def format_markdown(c: Comparison) -> str:
 def _runs_on_engine(path, out, kind, config, runs, vocabs, max_frames, sequential, speed, jobs, address, on_run):
     """The runs of a comparison as processes on the sweep's engine: (outcomes in table
     order, dataset name, how the stages ran, interrupted)."""
-    from orbslam_hgcn.engine import Engine
-    from orbslam_hgcn.app.sweep import run_argv, run_processes
-
     if config is not None:
         from orbslam_hgcn.config import resolve_config
 
