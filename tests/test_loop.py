@@ -299,7 +299,7 @@ def test_keyframe_added_during_global_ba_is_placed_on_the_optimised_points():
     parent, which it moves 5 cm further (as when the parent lies on the other side of a
     loop). Keyframe 20 must end where its observations of the optimised points put it,
     not follow its parent's extra move."""
-    from orbslam_hgcn.backend.bundle_adjustment import BAResult
+    from orbslam_hgcn.backend.problem import BAResult
     from orbslam_hgcn.config import BackendConfig
     from orbslam_hgcn.loop.global_ba import _write_back
 
