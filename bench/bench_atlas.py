@@ -54,8 +54,8 @@ import numpy as np
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.datasets.base import FrameRecord, Sequence
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
-from orbslam_hgcn.pipeline.run import trajectory_ate
-from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.app.run import trajectory_ate
+from orbslam_hgcn.runtime.system import Configs, System
 from orbslam_hgcn.vocabulary import load_vocabulary
 
 REPO = Path(__file__).resolve().parents[1]

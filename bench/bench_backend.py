@@ -162,7 +162,7 @@ def bench_kitti_windows(runs: int, frames: int = 120) -> None:
 
     from orbslam_hgcn.config import dataset_settings
     from orbslam_hgcn.datasets import open_sequence
-    from orbslam_hgcn.pipeline.system import Configs, System
+    from orbslam_hgcn.runtime.system import Configs, System
 
     path = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti00_first160" / "sequences" / "00"
     if not path.is_dir():

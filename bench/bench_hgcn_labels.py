@@ -39,8 +39,8 @@ import numpy as np
 from orbslam_hgcn.vocabulary import load_vocabulary
 from orbslam_hgcn.vocabulary.flat import kmeans, nearest
 from orbslam_hgcn.vocabulary.graph import build_graph, configure_faiss, fit_pca
-from orbslam_hgcn.vocabulary.tracks import build_tracks
-from orbslam_hgcn.vocabulary.train import make_extractor, open_image_source
+from orbslam_hgcn.vocabulary.training.tracks import build_tracks
+from orbslam_hgcn.vocabulary.training.train import make_extractor, open_image_source
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"

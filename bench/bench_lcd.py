@@ -147,7 +147,7 @@ def write_world(folder: Path, train: list, test: list, gt: np.ndarray) -> None:
 def train_vocabularies(train_desc: list[np.ndarray], args: argparse.Namespace) -> dict:
     """The ORB tree and (when available) the HGCN vocabulary trained on the training images,
     or loaded from ``--vocab-orb`` / ``--vocab-hgcn``; saved under ``--out`` when given."""
-    from orbslam_hgcn.vocabulary.base import load_vocabulary
+    from orbslam_hgcn.vocabulary.loading import load_vocabulary
     from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
 
     desc = np.vstack(train_desc)

@@ -63,8 +63,8 @@ import numpy as np
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.datasets.base import FrameRecord, Sequence
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
-from orbslam_hgcn.pipeline.run import trajectory_ate
-from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.app.run import trajectory_ate
+from orbslam_hgcn.runtime.system import Configs, System
 from orbslam_hgcn.tracking.tracker import TrackingState
 from orbslam_hgcn.trajectory import Trajectory
 from orbslam_hgcn.vocabulary import load_vocabulary

@@ -21,7 +21,7 @@ tree, where each search compares many more descriptor pairs. ``--peer-bow-level 
 it a copy of the vocabulary whose header makes that level 2.
 
 Both keyframe trajectories are scored the same way: ATE after Sim(3) alignment against the
-dataset's ground truth, through :func:`orbslam_hgcn.pipeline.run.trajectory_ate`.
+dataset's ground truth, through :func:`orbslam_hgcn.app.run.trajectory_ate`.
 
 Printed per run and system: frames given, frames tracked, frames lost, maps started,
 keyframes, keyframe ATE, frames/s, the median time from an image to its pose, wall time and
@@ -343,7 +343,7 @@ def children_cpu() -> float:
 
 def keyframe_ate(gt: Any, path: Path) -> dict[str, Any]:
     from orbslam_hgcn.errors import OrbslamError
-    from orbslam_hgcn.pipeline.run import trajectory_ate
+    from orbslam_hgcn.app.run import trajectory_ate
     from orbslam_hgcn.trajectory import read_tum
 
     if gt is None:
@@ -505,7 +505,7 @@ def ours_features(args: argparse.Namespace) -> int | None:
     """ORB features per image that ``orbslam-hgcn run`` will use (its --config's orb section)."""
     from orbslam_hgcn.config import resolve_config
     from orbslam_hgcn.errors import OrbslamError
-    from orbslam_hgcn.pipeline.system import Configs
+    from orbslam_hgcn.runtime.system import Configs
 
     config = args.config
     extra = shlex.split(args.ours_args)
@@ -566,7 +566,7 @@ def main() -> int:
 
     from orbslam_hgcn.datasets.factory import detect_kind, open_sequence
     from orbslam_hgcn.errors import OrbslamError
-    from orbslam_hgcn.pipeline.run import camera_from_config
+    from orbslam_hgcn.app.run import camera_from_config
 
     try:
         kind = (args.dataset or detect_kind(args.sequence)).lower()

@@ -36,7 +36,8 @@ from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 from orbslam_hgcn.synth.trajectory import DeskSpec, LoopPath
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.trajectory import Trajectory, write_tum
-from orbslam_hgcn.vocabulary import KeyframeDatabase, load_vocabulary
+from orbslam_hgcn.map.database import KeyframeDatabase
+from orbslam_hgcn.vocabulary import load_vocabulary
 
 REPO = Path(__file__).resolve().parents[1]
 TUM_GT = REPO.parent / "shared" / "data" / "tum_fr3_long_office_household_sample" / "groundtruth.txt"

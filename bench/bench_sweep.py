@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from orbslam_hgcn.pipeline.sweep import run_sweep
+from orbslam_hgcn.app.sweep import run_sweep
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 
 

@@ -149,8 +149,8 @@ def run_one(
 ) -> dict:  # fmt: skip
     """One run in this process; returns its figures."""
     from orbslam_hgcn.datasets import open_sequence
-    from orbslam_hgcn.pipeline.run import open_vocabulary, trajectory_ate
-    from orbslam_hgcn.pipeline.system import Configs, System
+    from orbslam_hgcn.app.run import open_vocabulary, trajectory_ate
+    from orbslam_hgcn.runtime.system import Configs, System
 
     base = open_sequence("tum", path)
     n = len(base) if max_frames is None else min(len(base), max_frames)

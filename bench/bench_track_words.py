@@ -14,7 +14,7 @@ is in effect the identity (best epoch 0), so it is measured as B0h.
 Sequences: the place-recognition offices of ``bench_place_recognition.py`` (two laps round
 a desk, one rendered sequence per scene seed, not training scenes), keyframes every
 ``--kf-every`` frames. Tracks: features matched between consecutive keyframes
-(:func:`orbslam_hgcn.vocabulary.tracks.build_tracks`: mutual nearest neighbours, ratio
+(:func:`orbslam_hgcn.vocabulary.training.tracks.build_tracks`: mutual nearest neighbours, ratio
 test, RANSAC fundamental matrix), standing in for the map's point observations. A
 keyframe's track mean uses the members in itself and the keyframes before it that are
 less than ``--min-gap`` frames older (causal, and never reaching the keyframes a query is
@@ -50,7 +50,7 @@ from orbslam_hgcn.datasets import open_sequence  # noqa: E402
 from orbslam_hgcn.features.orb import ORBExtractor  # noqa: E402
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence  # noqa: E402
 from orbslam_hgcn.vocabulary import KeyframeDatabase, load_vocabulary  # noqa: E402
-from orbslam_hgcn.vocabulary.tracks import build_tracks  # noqa: E402
+from orbslam_hgcn.vocabulary.training.tracks import build_tracks  # noqa: E402
 
 ARMS = ("A0", "A1", "B0", "B0h", "orb")
 CONTRASTS = (("B0", "A0"), ("B0h", "A1"), ("B0h", "B0"), ("A1", "A0"))

@@ -33,8 +33,8 @@ from pathlib import Path
 
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
-from orbslam_hgcn.pipeline.run import trajectory_ate
-from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.app.run import trajectory_ate
+from orbslam_hgcn.runtime.system import Configs, System
 
 REPO = Path(__file__).resolve().parents[1]
 FR3_GT = REPO.parent / "shared" / "data" / "tum_fr3_long_office_household_sample" / "groundtruth.txt"

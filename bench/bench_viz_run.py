@@ -1,6 +1,6 @@
 """Overhead of live rerun logging on a real SLAM run (``orbslam-hgcn run --rerun save``).
 
-The same sequence is run through :func:`orbslam_hgcn.pipeline.run.run_dataset` with and
+The same sequence is run through :func:`orbslam_hgcn.app.run.run_dataset` with and
 without ``--rerun save FILE.rrd``, alternating the order within each pair (plain first in
 even pairs, logged first in odd ones) so that slow drifts of a shared machine's load fall
 on both. Per run: wall time of the whole call (open, SLAM, final map log and flush of the
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
-from orbslam_hgcn.pipeline.run import run_dataset
+from orbslam_hgcn.app.run import run_dataset
 
 TARGET = 0.10  # logging may add at most 10% to the run time
 # Names of the rerun SDK's native threads (rerun-sdk 0.41: micro-batching, the recording

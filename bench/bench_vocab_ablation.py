@@ -96,7 +96,7 @@ class Extractor:
 def sequence_tracks(desc: list[np.ndarray], uv: list[np.ndarray]) -> np.ndarray:
     """Track id of every descriptor of one sequence (``tracks.build_tracks``: binary
     descriptors by Hamming distance, float ones by Euclidean distance)."""
-    from orbslam_hgcn.vocabulary.tracks import build_tracks
+    from orbslam_hgcn.vocabulary.training.tracks import build_tracks
 
     return build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
 

@@ -48,7 +48,7 @@ def load_descriptors(cache: Path, n: int, seed: int = 0) -> tuple[np.ndarray, np
 
 def child(kind: str, n: int, cache: Path, words: int | None) -> None:
     from orbslam_hgcn.config import HgcnTrainConfig
-    from orbslam_hgcn.vocabulary.train import train_vocabulary
+    from orbslam_hgcn.vocabulary.training.train import train_vocabulary
 
     desc, image_ids, n_copies = load_descriptors(cache, n)
     rss_data = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

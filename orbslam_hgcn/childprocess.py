@@ -2,7 +2,7 @@
 
 Used where Python work must not share the GIL with tracking: gtsam keeps the GIL while it
 iterates (bundle adjustment, :mod:`orbslam_hgcn.backend.solver`), and ORB extraction has
-Python parts between its OpenCV calls (:mod:`orbslam_hgcn.pipeline.extraction`).
+Python parts between its OpenCV calls (:mod:`orbslam_hgcn.runtime.extraction`).
 
 The child is started with the ``spawn`` method (safe with threads, unlike ``fork``) and
 builds its object as ``factory(*factory_args)`` (both must pickle). A request is a method

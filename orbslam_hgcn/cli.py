@@ -120,7 +120,7 @@ def _run_eval(args: argparse.Namespace) -> int:
 
     from orbslam_hgcn.evaluation.ate import evaluate
     from orbslam_hgcn.evaluation.report import format_table, write_report
-    from orbslam_hgcn.pipeline.results import check_output_folder
+    from orbslam_hgcn.runtime.results import check_output_folder
     from orbslam_hgcn.trajectory import read_tum
 
     gt_path, est_path = Path(args.gt), Path(args.est)
@@ -207,7 +207,7 @@ def _run_lcd(args: argparse.Namespace) -> int:
 
     from orbslam_hgcn.config import FabmapConfig, load_yaml, section_from_yaml
     from orbslam_hgcn.errors import ConfigError
-    from orbslam_hgcn.pipeline.results import check_output_folder
+    from orbslam_hgcn.runtime.results import check_output_folder
     from orbslam_hgcn.placerec import lcd
 
     check_output_folder(args.out)
@@ -353,7 +353,7 @@ def _run_synth(args: argparse.Namespace) -> int:
         "repeated_texture": args.repeated_texture, "texel_scale": args.texel_scale, "loop_gt": args.loop_gt,
         "depth": args.depth, "laps": args.laps,
     }
-    from orbslam_hgcn.pipeline.results import check_output_folder
+    from orbslam_hgcn.runtime.results import check_output_folder
 
     options = synth_options(args.preset, **{k: v for k, v in given.items() if v is not None})
     out = render_sequence(check_output_folder(args.out), options, force=args.force)
@@ -381,7 +381,7 @@ def _add_sequential_argument(p: argparse.ArgumentParser) -> None:
 
 @subcommand
 def _add_run(sub: argparse._SubParsersAction) -> None:
-    from orbslam_hgcn.pipeline.ending import exit_status_help
+    from orbslam_hgcn.app.ending import exit_status_help
 
     p = sub.add_parser(
         "run",
@@ -425,7 +425,7 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_run(args: argparse.Namespace) -> int:
-    from orbslam_hgcn.pipeline.run import format_report, run_dataset
+    from orbslam_hgcn.app.run import format_report, run_dataset
 
     report = run_dataset(
         args.path, args.out, kind=args.dataset, config=args.config, max_frames=args.max_frames,
@@ -493,7 +493,7 @@ def _run_vocab_train(args: argparse.Namespace) -> int:
     import dataclasses
 
     from orbslam_hgcn.config import HgcnTrainConfig, TreeTrainConfig, load_yaml, section_from_yaml
-    from orbslam_hgcn.vocabulary.train import train_from_images
+    from orbslam_hgcn.vocabulary.training.train import train_from_images
 
     data = load_yaml(args.config) if args.config else {}
     tree = section_from_yaml(TreeTrainConfig, data, args.config or "", "vocab_tree")
@@ -526,7 +526,7 @@ def _run_vocab_info(args: argparse.Namespace) -> int:
 
 
 def _run_vocab_export(args: argparse.Namespace) -> int:
-    from orbslam_hgcn.pipeline.results import check_output_file
+    from orbslam_hgcn.runtime.results import check_output_file
     from orbslam_hgcn.vocabulary import load_vocabulary
     from orbslam_hgcn.vocabulary.dbow2 import write_dbow2_text
 
@@ -563,7 +563,7 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_compare(args: argparse.Namespace) -> int:
-    from orbslam_hgcn.pipeline.compare import describe_run, format_markdown, run_comparison
+    from orbslam_hgcn.app.compare import describe_run, format_markdown, run_comparison
 
     comp = run_comparison(
         args.path, args.out, kind=args.dataset, config=args.config, runs=args.runs, vocabs=args.vocabs,
@@ -605,7 +605,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from orbslam_hgcn.pipeline.demo import run_demo
+    from orbslam_hgcn.app.demo import run_demo
 
     rerun = [] if args.no_rerun else args.rerun
     comp = run_demo(out=args.out, frames=args.frames, runs=args.runs, cache=args.cache, rerun=rerun,
@@ -638,7 +638,7 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_sweep(args: argparse.Namespace) -> int:
-    from orbslam_hgcn.pipeline.sweep import run_sweep
+    from orbslam_hgcn.app.sweep import run_sweep
 
     sw = run_sweep(args.manifest, args.out, jobs=args.jobs, address=args.address,
                    use_ray=False if args.no_ray else None, progress=not args.no_progress)

@@ -18,7 +18,7 @@ The first run after an install compiles them (7-10 s for the tracking kernels an
 10 s for FAST and the quadtree on a 2-core machine); later runs load them from the cache
 (about 0.5 s). Each kernel module warms itself: its ``warm_up()`` runs its kernels once on
 a tiny problem with the argument types of a real run. The system calls them before the
-first frame (:func:`orbslam_hgcn.pipeline.system.warm_up_kernels`; local BA's in the
+first frame (:func:`orbslam_hgcn.runtime.system.warm_up_kernels`; local BA's in the
 solver that runs it, extraction's in the extractor or its process), so that the time is
 not spent inside a frame.
 """

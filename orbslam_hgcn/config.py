@@ -15,7 +15,7 @@ Camera files (the shipped ones in ``orbslam_hgcn/configs/*.yaml``) use one flat 
 
 The same keys may instead sit under a ``camera:`` section of a larger file. Every value is
 validated on load; an error names the file and the key. A file may also carry stage
-sections (``orb:``, ``tracking:``, ...; see :class:`~orbslam_hgcn.pipeline.system.Configs`):
+sections (``orb:``, ``tracking:``, ...; see :class:`~orbslam_hgcn.runtime.system.Configs`):
 each shipped camera carries the settings ORB-SLAM's example files use for it.
 
 Stage configs are frozen dataclasses defined below, each with its defaults beside their
@@ -34,6 +34,8 @@ import yaml
 
 from orbslam_hgcn.errors import ConfigError, where
 from orbslam_hgcn.geometry.camera import PinholeCamera
+# Defined beside the two-view solver that reads it (geometry never imports this module).
+from orbslam_hgcn.geometry.two_view import InitializerConfig  # noqa: F401
 
 # The shipped camera configs, package data (read the same from a checkout or a wheel).
 CONFIG_DIR = Path(str(importlib.resources.files("orbslam_hgcn") / "configs"))
@@ -318,21 +320,6 @@ class ORBConfig:
     # extraction about 15% faster on an idle 2-core machine, but the threaded system keeps
     # both cores busy, and there one thread per extraction gave as many or more frames/s.
     threads: int = 1
-
-
-@dataclasses.dataclass(frozen=True)
-class InitializerConfig:
-    """Monocular two-view initialisation (ORB-SLAM Initializer, T-RO 2015 section IV)."""
-
-    sigma: float = 1.0  # pixel standard deviation of a level-0 keypoint
-    ransac_iterations: int = 200  # 8-point sets shared by the H and F RANSACs
-    rh_threshold: float = 0.45  # choose the homography when S_H / (S_H + S_F) exceeds this
-    min_parallax_deg: float = 1.0  # reject a reconstruction whose parallax is below this
-    min_triangulated: int = 50  # reject a reconstruction with fewer good points
-    seed: int = 0  # seed of the random 8-point sets (reproducible initialisation)
-    # Refine the winning H / F on its inliers (symmetric transfer / Sampson error) before
-    # decomposing it; ORB-SLAM keeps the 8-point estimate and relies on its global BA.
-    refine: bool = True
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,7 +9,7 @@ import signal
 from pathlib import Path
 
 from orbslam_hgcn.childprocess import ChildProcess
-from orbslam_hgcn.pipeline.extraction import ExtractionError, ExtractionProcess, Extractors
+from orbslam_hgcn.runtime.extraction import ExtractionError, ExtractionProcess, Extractors
 
 
 class FailingExtractors(Extractors):

@@ -17,9 +17,9 @@ from orbslam_hgcn.datasets.base import Sequence
 from orbslam_hgcn.map import check_invariants
 from orbslam_hgcn.map.io import MAGIC, read_map
 from orbslam_hgcn.npzfile import atomic_save_npz, read_npz
-from orbslam_hgcn.pipeline.mapfile import load_map, save_system_map
-from orbslam_hgcn.pipeline.run import trajectory_ate
-from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.app.mapfile import load_map, save_system_map
+from orbslam_hgcn.app.run import trajectory_ate
+from orbslam_hgcn.runtime.system import Configs, System
 from orbslam_hgcn.vocabulary import load_vocabulary
 
 FPS = 30.0

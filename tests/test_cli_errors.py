@@ -171,7 +171,7 @@ SIGNALS = [(signal.SIGINT, 130), (signal.SIGTERM, 143)]
 
 @pytest.mark.parametrize("sig,status", SIGNALS)
 def test_compare_interrupted_keeps_the_runs_made(sig, status, inputs, tmp_path, capsys, monkeypatch):
-    import orbslam_hgcn.pipeline.run as run_mod
+    import orbslam_hgcn.app.run as run_mod
 
     monkeypatch.setattr(run_mod, "run_dataset", _fake_run(sig, at_run=2))
     before = signal.getsignal(signal.SIGTERM)
@@ -185,8 +185,8 @@ def test_compare_interrupted_keeps_the_runs_made(sig, status, inputs, tmp_path, 
 
 @pytest.mark.parametrize("sig,status", SIGNALS)
 def test_demo_interrupted(sig, status, inputs, tmp_path, capsys, monkeypatch):
-    import orbslam_hgcn.pipeline.demo as demo_mod
-    import orbslam_hgcn.pipeline.run as run_mod
+    import orbslam_hgcn.app.demo as demo_mod
+    import orbslam_hgcn.app.run as run_mod
 
     monkeypatch.setattr(demo_mod, "demo_sequence", lambda *a, **k: Path(inputs.seq))
     monkeypatch.setattr(run_mod, "run_dataset", _fake_run(sig, at_run=2))
@@ -198,8 +198,8 @@ def test_demo_interrupted(sig, status, inputs, tmp_path, capsys, monkeypatch):
 
 def test_compare_and_demo_exit_1_when_runs_fail(inputs, tmp_path, capsys, monkeypatch):
     """As sweep does: 1 when a run failed (here every run), with the tables written."""
-    import orbslam_hgcn.pipeline.demo as demo_mod
-    import orbslam_hgcn.pipeline.run as run_mod
+    import orbslam_hgcn.app.demo as demo_mod
+    import orbslam_hgcn.app.run as run_mod
     from orbslam_hgcn.errors import DatasetError
 
     def failing(path, out, **kw):
@@ -217,7 +217,7 @@ def test_compare_and_demo_exit_1_when_runs_fail(inputs, tmp_path, capsys, monkey
 
 @pytest.mark.parametrize("sig,status", SIGNALS)
 def test_sweep_interrupted_keeps_the_tables(sig, status, inputs, tmp_path, capsys, monkeypatch):
-    import orbslam_hgcn.pipeline.sweep as sweep_mod
+    import orbslam_hgcn.app.sweep as sweep_mod
 
     def processes(argvs, engine):
         out = Path(argvs[0][1])

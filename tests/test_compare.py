@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from orbslam_hgcn.cli import main
-from orbslam_hgcn.pipeline.demo import demo_sequence
+from orbslam_hgcn.app.demo import demo_sequence
 
 FRAMES = 30
 
@@ -100,7 +100,7 @@ def test_compare_marks_runs_with_untracked_frames_or_resets_as_failed(tmp_path):
     ATE shown but left out of the vocabulary's figures."""
     from types import SimpleNamespace
 
-    from orbslam_hgcn.pipeline.compare import run_comparison
+    from orbslam_hgcn.app.compare import run_comparison
 
     outcomes = {1: (100, 0, 0.010), 2: (85, 0, 0.002), 3: (100, 1, 0.003), 4: (91, 0, 0.020)}
 

@@ -102,7 +102,7 @@ def test_missing_config_is_a_config_error(tmp_path):
 )  # fmt: skip
 def test_shipped_configs_carry_orb_slams_settings(name, features):
     """ORB-SLAM's example settings (ORBextractor.*) for each camera, used as stage settings."""
-    from orbslam_hgcn.pipeline.system import Configs
+    from orbslam_hgcn.runtime.system import Configs
 
     c = Configs.from_yaml(CONFIG_DIR / f"{name}.yaml")
     assert (c.orb.n_features, c.orb.scale_factor, c.orb.n_levels) == (features, 1.2, 8)
@@ -147,7 +147,7 @@ def test_dataset_settings_follow_the_datasets_camera(tmp_path, tum_layout, euroc
 
 def test_config_overrides_dataset_settings_key_by_key(tmp_path):
     """--config replaces only the keys it names: the rest of a section keeps the dataset's."""
-    from orbslam_hgcn.pipeline.system import Configs
+    from orbslam_hgcn.runtime.system import Configs
 
     user = tmp_path / "user.yaml"
     user.write_text("orb: {n_levels: 6}\ntracking: {min_inliers: 40}\n")

@@ -25,7 +25,7 @@ from orbslam_hgcn.config import save_camera
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.mapping import local_mapper
 from orbslam_hgcn.mapping.local_mapper import LocalMapper
-from orbslam_hgcn.pipeline import system as system_module
+from orbslam_hgcn.runtime import system as system_module
 from orbslam_hgcn.tracking.tracker import Tracker
 from orbslam_hgcn.trajectory import read_tum
 

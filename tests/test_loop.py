@@ -21,7 +21,7 @@ from orbslam_hgcn.loop.projection import search_by_sim3
 from orbslam_hgcn.loop.sim3_check import LoopMatch, compute_sim3, loop_neighbourhood
 from orbslam_hgcn.map import Frame, Map, check_invariants
 from orbslam_hgcn.map.window import global_window
-from orbslam_hgcn.vocabulary.database import KeyframeDatabase
+from orbslam_hgcn.map.database import KeyframeDatabase
 
 from loop_fixtures import (
     RingScene,
@@ -299,7 +299,7 @@ def test_keyframe_added_during_global_ba_is_placed_on_the_optimised_points():
     parent, which it moves 5 cm further (as when the parent lies on the other side of a
     loop). Keyframe 20 must end where its observations of the optimised points put it,
     not follow its parent's extra move."""
-    from orbslam_hgcn.backend.bundle_adjustment import BAResult
+    from orbslam_hgcn.backend.problem import BAResult
     from orbslam_hgcn.config import BackendConfig
     from orbslam_hgcn.loop.global_ba import _write_back
 
@@ -334,8 +334,8 @@ def test_system_closes_a_small_synthetic_loop(tmp_path_factory):
     between the two visits and the keyframe ATE falls when it is corrected. Needs the
     shipped HGCN vocabulary; renders 600 frames and runs SLAM on them (minutes)."""
     from orbslam_hgcn.datasets import open_sequence
-    from orbslam_hgcn.pipeline.run import trajectory_ate
-    from orbslam_hgcn.pipeline.system import System
+    from orbslam_hgcn.app.run import trajectory_ate
+    from orbslam_hgcn.runtime.system import System
     from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
     from orbslam_hgcn.vocabulary import load_vocabulary
 

@@ -13,8 +13,8 @@ from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.errors import VocabularyError
 from orbslam_hgcn.map import check_invariants
 from orbslam_hgcn.map.io import MapFileError, read_map
-from orbslam_hgcn.pipeline.mapfile import install_map, load_map, save_system_map
-from orbslam_hgcn.pipeline.system import System
+from orbslam_hgcn.app.mapfile import install_map, load_map, save_system_map
+from orbslam_hgcn.runtime.system import System
 from orbslam_hgcn.trajectory import Trajectory
 from orbslam_hgcn.vocabulary import load_vocabulary
 

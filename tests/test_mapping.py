@@ -19,7 +19,7 @@ from orbslam_hgcn.mapping import triangulate as triangulate_module
 from orbslam_hgcn.mapping.culling import cull_recent_points, redundant_keyframes
 from orbslam_hgcn.mapping.fuse import search_in_neighbors
 from orbslam_hgcn.mapping.triangulate import create_new_points, epipolar_candidate_pairs
-from orbslam_hgcn.pipeline.system import System
+from orbslam_hgcn.runtime.system import System
 
 CAM = PinholeCamera(fx=520.0, fy=520.0, cx=320.0, cy=240.0, width=640, height=480)
 SCALES = 1.2 ** np.arange(8)

@@ -20,8 +20,8 @@ from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.geometry.se3 import angle_between_deg, inv_T, rotation_angle_deg
 from orbslam_hgcn.map import Frame, Map, check_invariants
 from orbslam_hgcn.match.grid import FeatureGrid
-from orbslam_hgcn.pipeline.run import run_dataset, trajectory_ate
-from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.app.run import run_dataset, trajectory_ate
+from orbslam_hgcn.runtime.system import Configs, System
 from orbslam_hgcn.tracking.initializer import MonocularInitializer
 
 

@@ -12,7 +12,7 @@ from orbslam_hgcn.match.grid import FeatureGrid
 from orbslam_hgcn.tracking.relocalization import Relocalizer, relocalize
 from orbslam_hgcn.tracking.tracker import Tracker, TrackingState
 from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector
-from orbslam_hgcn.vocabulary.database import KeyframeDatabase
+from orbslam_hgcn.map.database import KeyframeDatabase
 
 from loop_fixtures import SCALE_FACTORS, RingScene, bow_of, build_ring_map, frame_at, ring_pose
 

@@ -3,9 +3,9 @@ initialised", and no statistic is printed from an empty sample."""
 
 from __future__ import annotations
 
-from orbslam_hgcn.pipeline.ending import RunEnd
-from orbslam_hgcn.pipeline.results import summary_ms
-from orbslam_hgcn.pipeline.run import RunReport, format_report
+from orbslam_hgcn.app.ending import RunEnd
+from orbslam_hgcn.runtime.results import summary_ms
+from orbslam_hgcn.app.run import RunReport, format_report
 
 
 def _report(events, tracking_ms, mapping_ms, tracked=0, resets=0) -> list[str]:

@@ -12,8 +12,8 @@ import ray
 import yaml
 
 from orbslam_hgcn.cli import main
-from orbslam_hgcn.pipeline import sweep
-from orbslam_hgcn.pipeline.demo import demo_sequence
+from orbslam_hgcn.app import processes, sweep
+from orbslam_hgcn.app.demo import demo_sequence
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +61,7 @@ def fake_run(tmp_path, monkeypatch):
     """RUN_PROGRAM replaced by FAKE_RUN; returns the file listing each process started."""
     script = tmp_path / "fake_run.py"
     script.write_text(FAKE_RUN)
-    monkeypatch.setattr(sweep, "RUN_PROGRAM", [sys.executable, str(script)])
+    monkeypatch.setattr(processes, "RUN_PROGRAM", [sys.executable, str(script)])
     return tmp_path / "starts.log"  # the sweeps write into tmp_path / "out"
 
 
@@ -254,9 +254,9 @@ def test_vocab_train_extracts_in_shards_on_ray_and_trains_on_the_device_asked(re
     from orbslam_hgcn.cli import build_parser
     from orbslam_hgcn.config import HgcnTrainConfig
     from orbslam_hgcn.errors import ConfigError
-    from orbslam_hgcn.pipeline.engine import Engine
-    from orbslam_hgcn.vocabulary import train
-    from orbslam_hgcn.vocabulary.hgcn import training_device
+    from orbslam_hgcn.engine import Engine
+    from orbslam_hgcn.vocabulary.training import train
+    from orbslam_hgcn.vocabulary.training.hgcn import training_device
 
     sources = [train.open_image_source(renders[1])]
     pairs = train.select_images(sources, 6)

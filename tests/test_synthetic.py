@@ -366,7 +366,7 @@ def test_a_half_written_render_is_made_again_and_user_files_are_kept(tmp_path, c
 
 
 def test_demo_cache_recovers_from_an_interrupted_render_and_force_renders_again(tmp_path, monkeypatch):
-    from orbslam_hgcn.pipeline.demo import demo_sequence
+    from orbslam_hgcn.app.demo import demo_sequence
 
     cache = tmp_path / "cache"
     folder = cache / "loop_3frames"

@@ -15,9 +15,9 @@ from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import make_T
 from orbslam_hgcn.map import Frame, Map, check_invariants
-from orbslam_hgcn.pipeline.results import camera_trajectory
+from orbslam_hgcn.runtime.results import camera_trajectory
 from orbslam_hgcn.config import TrackingConfig
-from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.runtime.system import Configs, System
 from orbslam_hgcn.tracking.tracker import PoseRecord, TrackingState
 from orbslam_hgcn.trajectory import read_tum
 

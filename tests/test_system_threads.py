@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from orbslam_hgcn.backend.bundle_adjustment import as_problem
+from orbslam_hgcn.backend.problem import as_problem
 from orbslam_hgcn.backend.pose_graph import relative_sim3
 from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver, SolverError
 from orbslam_hgcn.cli import main
@@ -27,11 +27,11 @@ from orbslam_hgcn.evaluation.ate import evaluate
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.map import check_invariants
 from orbslam_hgcn.map.window import apply_window, local_window
-from orbslam_hgcn.pipeline.extraction import ExtractionError, ExtractionProcess
-from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
-from orbslam_hgcn.pipeline.stages import ThreadedStages
-from orbslam_hgcn.pipeline.system import Configs, System
-from orbslam_hgcn.pipeline.worker import WorkerError
+from orbslam_hgcn.runtime.extraction import ExtractionError, ExtractionProcess
+from orbslam_hgcn.runtime.locks import TrackingFirstLock, first
+from orbslam_hgcn.runtime.stages import ThreadedStages
+from orbslam_hgcn.runtime.system import Configs, System
+from orbslam_hgcn.runtime.worker import WorkerError
 
 from backend_fixtures import drifted_loop, make_scene, perturb_pose
 

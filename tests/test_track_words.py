@@ -10,8 +10,8 @@ import vocab_fixtures as vf
 
 from orbslam_hgcn.config import LocalMappingConfig
 from orbslam_hgcn.datasets import open_sequence
-from orbslam_hgcn.pipeline.mapfile import install_map, load_map, save_system_map
-from orbslam_hgcn.pipeline.system import Configs, System
+from orbslam_hgcn.app.mapfile import install_map, load_map, save_system_map
+from orbslam_hgcn.runtime.system import Configs, System
 from orbslam_hgcn.vocabulary import load_vocabulary
 from orbslam_hgcn.vocabulary.track_words import TrackWords
 

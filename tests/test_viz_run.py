@@ -15,8 +15,8 @@ import rerun as rr
 from rerun.chunk import RrdReader
 
 from orbslam_hgcn import cli
-from orbslam_hgcn.pipeline import run as run_module
-from orbslam_hgcn.pipeline.system import System
+from orbslam_hgcn.app import run as run_module
+from orbslam_hgcn.runtime.system import System
 from orbslam_hgcn.trajectory import read_tum
 from orbslam_hgcn.viz import records as ent
 from orbslam_hgcn.viz.live import LiveViz, gt_in_map, sim3_ate

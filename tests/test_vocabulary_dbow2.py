@@ -10,7 +10,7 @@ import vocab_fixtures as vf
 from orbslam_hgcn.cli import main
 from orbslam_hgcn.errors import VocabularyError
 from orbslam_hgcn.vocabulary import dbow2, load_vocabulary
-from orbslam_hgcn.vocabulary.base import DEFAULT_FILES
+from orbslam_hgcn.vocabulary.loading import DEFAULT_FILES
 from orbslam_hgcn.vocabulary.orb_tree import TreeVocabulary
 
 
@@ -115,7 +115,7 @@ def test_detected_by_content_and_kind_checked(exported, tmp_path):
     other.write_bytes(path.read_bytes())
     assert dbow2.is_dbow2_text(other) and not dbow2.is_dbow2_text(DEFAULT_FILES["orb"])
     assert load_vocabulary(other).n_words == back.n_words
-    assert TreeVocabulary.load(path).n_words == back.n_words
+    assert load_vocabulary(path, expected_kind="orb").n_words == back.n_words
     with pytest.raises(VocabularyError, match="expected 'hgcn'"):
         load_vocabulary(path, expected_kind="hgcn")
 

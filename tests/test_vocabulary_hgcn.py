@@ -19,7 +19,7 @@ from orbslam_hgcn.vocabulary.graph import (
     symmetric_adjacency,
     two_hop_blocks,
 )
-from orbslam_hgcn.vocabulary.hgcn import train_hgcn
+from orbslam_hgcn.vocabulary.training.hgcn import train_hgcn
 from orbslam_hgcn.vocabulary.hgcn_vocab import seed_labels
 
 
@@ -268,7 +268,7 @@ def test_trained_hgcn_vocabulary_quantiser():
 
 
 def test_tracks_from_consecutive_real_frames():
-    from orbslam_hgcn.vocabulary.tracks import build_tracks, match_pair
+    from orbslam_hgcn.vocabulary.training.tracks import build_tracks, match_pair
 
     kps = [vf.keypoints("tum", i) for i in range(4, 8)]  # 33 ms apart: nearly the same view
     a, b = match_pair(kps[0].desc, kps[1].desc, kps[0].uv_raw, kps[1].uv_raw)
@@ -293,7 +293,7 @@ def test_tracks_of_float_descriptors():
     """SIFT (float) descriptors are matched by Euclidean distance under the same rules."""
     import cv2
 
-    from orbslam_hgcn.vocabulary.tracks import match_pair
+    from orbslam_hgcn.vocabulary.training.tracks import match_pair
 
     sift = cv2.SIFT_create(nfeatures=800)
 

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from orbslam_hgcn.config import HgcnTrainConfig
-from orbslam_hgcn.vocabulary import hyperbolic as hyp
-from orbslam_hgcn.vocabulary.hgcn import HGCN, HGCNLayer, sparse_tensor
+from orbslam_hgcn.vocabulary.training import hyperbolic as hyp
+from orbslam_hgcn.vocabulary.training.hgcn import HGCN, HGCNLayer, sparse_tensor
 
 C_VALUES = [0.3, 1.0, 2.5]
 

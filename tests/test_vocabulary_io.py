@@ -9,7 +9,7 @@ import vocab_fixtures as vf
 from orbslam_hgcn import cli
 from orbslam_hgcn.errors import VocabularyError
 from orbslam_hgcn.vocabulary import load_vocabulary
-from orbslam_hgcn.vocabulary import train as train_mod
+from orbslam_hgcn.vocabulary.training import train as train_mod
 from orbslam_hgcn.npzfile import atomic_save_npz
 from orbslam_hgcn.vocabulary.base import FORMAT_VERSION
 from orbslam_hgcn.vocabulary.flat import KMeansVocabulary
@@ -38,7 +38,7 @@ def test_round_trip_gives_identical_output(saved):
         (b1, f1), (b2, f2) = vocab.transform(desc), back.transform(desc)
         assert b1 == b2 and len(b1) > 0
         assert f1.keys() == f2.keys() and all(np.array_equal(f1[k], f2[k]) for k in f1)
-    assert type(vocab).load(path).n_words == vocab.n_words
+    assert load_vocabulary(path, expected_kind=vocab.kind).n_words == vocab.n_words
 
 
 def _expect_error(path, match=None, **kw):
@@ -68,7 +68,7 @@ def test_damaged_files_raise_vocabulary_errors(saved, tmp_path):
     for cls in (HGCNVocabulary, TreeVocabulary, KMeansVocabulary):
         if cls.kind != vocab.kind:
             with pytest.raises(VocabularyError):
-                cls.load(path)
+                load_vocabulary(path, expected_kind=cls.kind)
 
 
 def _rewrite(path, out, **changes):
@@ -159,7 +159,7 @@ def test_zip_member_crc_is_checked(tmp_path):
 
 @pytest.mark.parametrize("name", ["orb", "hgcn", "kmeans", "orb10k"])
 def test_shipped_vocabularies(name):
-    from orbslam_hgcn.vocabulary.base import SHIPPED
+    from orbslam_hgcn.vocabulary.loading import SHIPPED
 
     path = SHIPPED[name]
     assert path.is_file() and path.stat().st_size < 50e6
@@ -246,7 +246,7 @@ def test_image_sources(tmp_path):
     import shutil
 
     from orbslam_hgcn.errors import DatasetError
-    from orbslam_hgcn.vocabulary.train import open_image_source, select_images
+    from orbslam_hgcn.vocabulary.training.train import open_image_source, select_images
 
     nested = tmp_path / "a" / "b"
     nested.mkdir(parents=True)

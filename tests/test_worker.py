@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from orbslam_hgcn.pipeline.worker import Worker, WorkerError
+from orbslam_hgcn.runtime.worker import Worker, WorkerError
 
 
 def test_items_processed_in_order_and_drained_on_stop():

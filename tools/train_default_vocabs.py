@@ -35,9 +35,9 @@ from pathlib import Path
 
 from orbslam_hgcn.config import HgcnTrainConfig, TreeTrainConfig
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
-from orbslam_hgcn.vocabulary.base import SHIPPED
-from orbslam_hgcn.vocabulary.tracks import build_tracks
-from orbslam_hgcn.vocabulary.train import extract_descriptors, open_image_source, select_images, train_vocabulary
+from orbslam_hgcn.vocabulary.loading import SHIPPED
+from orbslam_hgcn.vocabulary.training.tracks import build_tracks
+from orbslam_hgcn.vocabulary.training.train import extract_descriptors, open_image_source, select_images, train_vocabulary
 
 log = logging.getLogger("train_default_vocabs")
 

@@ -23,12 +23,13 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from typing import NamedTuple
 
 import gtsam
 import numpy as np
 
+from orbslam_hgcn.backend.problem import BAProblem, BAResult, as_problem
 from orbslam_hgcn.backend.projection import reprojection_chi2
+from orbslam_hgcn.backend.schur_ba import schur_bundle_adjustment
 from orbslam_hgcn.config import BackendConfig
 from orbslam_hgcn.geometry.se3 import inv_T
 
@@ -37,42 +38,6 @@ log = logging.getLogger(__name__)
 # A fixed pose is pinned by a prior this tight; NonlinearEqualityPose3 (a constrained noise
 # model) makes every elimination about ten times slower in gtsam 4.3.
 _FIXED_POSE_NOISE = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
-
-
-class BAResult(NamedTuple):
-    """T_cw (K, 4, 4) poses; points (P, 3); outlier (O,) bool per observation (chi2 above
-    the threshold or behind the camera, evaluated at the returned estimates)."""
-
-    T_cw: np.ndarray
-    points: np.ndarray
-    outlier: np.ndarray
-
-
-class BAProblem(NamedTuple):
-    """Input arrays of one bundle adjustment (see :func:`bundle_adjustment`)."""
-
-    T_cw: np.ndarray
-    fixed: np.ndarray
-    points: np.ndarray
-    obs_kf: np.ndarray
-    obs_pt: np.ndarray
-    uv: np.ndarray
-    inv_sigma2: np.ndarray
-    K: np.ndarray
-
-
-def as_problem(T_cw, fixed, points, obs_kf, obs_pt, uv, inv_sigma2, K) -> BAProblem:
-    """A :class:`BAProblem` of contiguous arrays with the dtypes the backend expects."""
-    return BAProblem(
-        np.ascontiguousarray(T_cw, dtype=np.float64).reshape(-1, 4, 4),
-        np.ascontiguousarray(fixed, dtype=bool).reshape(-1),
-        np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3),
-        np.ascontiguousarray(obs_kf, dtype=np.int64).reshape(-1),
-        np.ascontiguousarray(obs_pt, dtype=np.int64).reshape(-1),
-        np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 2),
-        np.ascontiguousarray(inv_sigma2, dtype=np.float64).reshape(-1),
-        np.ascontiguousarray(K, dtype=np.float64).reshape(3, 3),
-    )
 
 
 def observation_chi2(
@@ -226,9 +191,7 @@ def local_bundle_adjustment(
     ``should_stop`` may end the robust iterations: ``local_ba_abort_robust``), solved by
     the compiled Schur-complement LM or through gtsam (``local_ba_solver``)."""
     cfg = config or BackendConfig()
-    solve = bundle_adjustment
-    if cfg.local_ba_solver == "schur":
-        from orbslam_hgcn.backend.schur_ba import schur_bundle_adjustment as solve
+    solve = schur_bundle_adjustment if cfg.local_ba_solver == "schur" else bundle_adjustment
     return solve(
         T_cw, fixed, points, obs_kf, obs_pt, uv, inv_sigma2, K,
         iterations=cfg.local_ba_iterations, refine_iterations=cfg.local_ba_refine_iterations,

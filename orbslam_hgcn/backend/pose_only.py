@@ -73,8 +73,8 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
 
 
 @jit
-def _compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """(4, 4) A @ B of two rigid transforms."""
+def se3_compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """(4, 4) A @ B of two rigid transforms (compiled; also the pose update of :mod:`.schur_ba`)."""
     out = np.zeros((4, 4))
     out[3, 3] = 1.0
     for i in range(3):
@@ -188,7 +188,7 @@ def _levenberg_marquardt(T0, X, uv, info, act, fx, fy, cx, cy, iters, delta, rob
                 gain += dx[a] * (lam * dx[a] - g[a])
             if gain <= 1e-12 * max(cost, 1e-300):
                 break  # converged: no step can lower the cost measurably
-            T_new = _compose(se3_exp(dx), T)
+            T_new = se3_compose(se3_exp(dx), T)
             new_cost = _cost(T_new, X, uv, info, act, fx, fy, cx, cy, delta, robust)
             rho = (cost - new_cost) / (gain + 1e-3)
             if rho > 0.0 and math.isfinite(new_cost):

@@ -37,26 +37,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from orbslam_hgcn.backend.pose_only import se3_exp
+from orbslam_hgcn.backend.pose_only import se3_compose, se3_exp
+from orbslam_hgcn.backend.problem import BAResult, as_problem
 from orbslam_hgcn.backend.projection import reprojection_chi2
 from orbslam_hgcn.compiled import jit
 from orbslam_hgcn.config import BackendConfig
 
 log = logging.getLogger(__name__)
-
-@jit
-def _left_compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """(4, 4) A @ B of two rigid transforms."""
-    out = np.zeros((4, 4))
-    out[3, 3] = 1.0
-    for i in range(3):
-        for j in range(4):
-            acc = A[i, 3] if j == 3 else 0.0
-            for k in range(3):
-                acc += A[i, k] * B[k, j]
-            out[i, j] = acc
-    return out
-
 
 @jit
 def _camera_point(T, X):
@@ -275,7 +262,7 @@ def _apply(T, X, dc, dp, cam_var, pt_var):
     for i in range(len(T)):
         c = cam_var[i]
         if c >= 0:
-            T_new[i] = _left_compose(se3_exp(dc[6 * c : 6 * c + 6]), T[i])
+            T_new[i] = se3_compose(se3_exp(dc[6 * c : 6 * c + 6]), T[i])
     X_new = X.copy()
     for p in range(len(X)):
         if pt_var[p]:
@@ -400,8 +387,6 @@ def schur_bundle_adjustment(
 ):
     """:func:`orbslam_hgcn.backend.bundle_adjustment.bundle_adjustment` (same arguments,
     same result type) solved by the compiled Schur-complement LM of this module."""
-    from orbslam_hgcn.backend.bundle_adjustment import BAResult, as_problem
-
     cfg = config or BackendConfig()
     p = as_problem(T_cw, fixed, points, obs_kf, obs_pt, uv, inv_sigma2, K)
     if len(p.fixed) != len(p.T_cw):

@@ -25,12 +25,8 @@ import time
 
 import numpy as np
 
-from orbslam_hgcn.backend.bundle_adjustment import (
-    BAProblem,
-    BAResult,
-    global_bundle_adjustment,
-    local_bundle_adjustment,
-)
+from orbslam_hgcn.backend.bundle_adjustment import global_bundle_adjustment, local_bundle_adjustment
+from orbslam_hgcn.backend.problem import BAProblem, BAResult
 from orbslam_hgcn.childprocess import ChildProcess, StopFn
 from orbslam_hgcn.config import BackendConfig
 from orbslam_hgcn.errors import StageError

@@ -29,7 +29,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from orbslam_hgcn.config import InitializerConfig
 from orbslam_hgcn.geometry.epipolar import decompose_essential
 from orbslam_hgcn.geometry.triangulation import triangulate_dlt
 from orbslam_hgcn.geometry.two_view_models import (
@@ -45,6 +44,21 @@ from orbslam_hgcn.geometry.two_view_models import (
 log = logging.getLogger(__name__)
 
 COS_PARALLAX_INF = 0.99998  # ORB-SLAM CheckRT: rays this close count as points at infinity
+
+
+@dataclass(frozen=True)
+class InitializerConfig:
+    """Monocular two-view initialisation (ORB-SLAM Initializer, T-RO 2015 section IV)."""
+
+    sigma: float = 1.0  # pixel standard deviation of a level-0 keypoint
+    ransac_iterations: int = 200  # 8-point sets shared by the H and F RANSACs
+    rh_threshold: float = 0.45  # choose the homography when S_H / (S_H + S_F) exceeds this
+    min_parallax_deg: float = 1.0  # reject a reconstruction whose parallax is below this
+    min_triangulated: int = 50  # reject a reconstruction with fewer good points
+    seed: int = 0  # seed of the random 8-point sets (reproducible initialisation)
+    # Refine the winning H / F on its inliers (symmetric transfer / Sampson error) before
+    # decomposing it; ORB-SLAM keeps the 8-point estimate and relies on its global BA.
+    refine: bool = True
 
 
 @dataclass(frozen=True, eq=False)

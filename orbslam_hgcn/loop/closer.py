@@ -34,7 +34,7 @@ from orbslam_hgcn.loop.global_ba import GlobalBAResult, run_global_ba
 from orbslam_hgcn.loop.merge import MergeEvent, merge_maps
 from orbslam_hgcn.loop.sim3_check import LoopMatch, Sim3Attempt, compute_sim3
 from orbslam_hgcn.map import KeyFrame, Map
-from orbslam_hgcn.vocabulary.database import KeyframeDatabase
+from orbslam_hgcn.map.database import KeyframeDatabase
 
 log = logging.getLogger(__name__)
 

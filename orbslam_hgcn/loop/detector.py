@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from orbslam_hgcn.config import LoopClosingConfig
 from orbslam_hgcn.map import KeyFrame, Map
 from orbslam_hgcn.vocabulary.bow import l1_score
-from orbslam_hgcn.vocabulary.database import KeyframeDatabase
+from orbslam_hgcn.map.database import KeyframeDatabase
 
 log = logging.getLogger(__name__)
 

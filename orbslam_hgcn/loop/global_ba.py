@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from orbslam_hgcn.backend.bundle_adjustment import BAResult, as_problem
+from orbslam_hgcn.backend.problem import BAResult, as_problem
 from orbslam_hgcn.backend.pose_only import optimize_pose
 from orbslam_hgcn.backend.solver import InProcessSolver
 from orbslam_hgcn.config import BackendConfig

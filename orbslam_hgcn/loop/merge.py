@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from orbslam_hgcn.backend.bundle_adjustment import as_problem
+from orbslam_hgcn.backend.problem import as_problem
 from orbslam_hgcn.backend.pose_graph import sim3_to_se3
 from orbslam_hgcn.backend.solver import InProcessSolver
 from orbslam_hgcn.config import BackendConfig, LoopClosingConfig

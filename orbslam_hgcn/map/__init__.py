@@ -1,4 +1,5 @@
-"""The map model: frames, keyframes, map points, covisibility graph and spanning tree."""
+"""The map model: frames, keyframes, map points, covisibility graph and spanning tree;
+the keyframe database over their BoW vectors is :mod:`.database` (imported on its own)."""
 
 from orbslam_hgcn.map.frame import Frame
 from orbslam_hgcn.map.graph import MapSnapshot, check_invariants, essential_graph, snapshot

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from orbslam_hgcn.backend.bundle_adjustment import as_problem
+from orbslam_hgcn.backend.problem import as_problem
 from orbslam_hgcn.backend.solver import InProcessSolver, SolverError
 from orbslam_hgcn.config import BackendConfig, LocalMappingConfig
 from orbslam_hgcn.map import KeyFrame, Map

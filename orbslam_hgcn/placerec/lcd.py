@@ -415,7 +415,7 @@ def load_vocabularies(
     nodes that many levels below the root (:class:`TreeLevelWords`); a VocabularyError
     when no method uses an ORB tree.
     """
-    from orbslam_hgcn.vocabulary.base import load_vocabulary
+    from orbslam_hgcn.vocabulary.loading import load_vocabulary
 
     loaded: dict[str, WordQuantizer] = {}
     out = {}

@@ -34,7 +34,7 @@ from orbslam_hgcn.geometry.pnp import solve_pnp_ransac
 from orbslam_hgcn.map import Frame, KeyFrame, Map, predict_scale
 from orbslam_hgcn.match.grid import FeatureGrid
 from orbslam_hgcn.match.matching import search_by_bow, search_by_projection
-from orbslam_hgcn.vocabulary.database import KeyframeDatabase
+from orbslam_hgcn.map.database import KeyframeDatabase
 
 log = logging.getLogger(__name__)
 

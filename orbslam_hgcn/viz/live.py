@@ -94,7 +94,7 @@ def map_snapshot_of(system: Any) -> MapSnapshot:
 
 
 class LiveViz:
-    """Logs a running :class:`~orbslam_hgcn.pipeline.system.System` to rerun.
+    """Logs a running :class:`~orbslam_hgcn.runtime.system.System` to rerun.
 
     Append it to ``system.observers`` (or use :func:`attach_live_viz`), run, then call
     :meth:`finish` with the system to log the final map and trajectories and close the

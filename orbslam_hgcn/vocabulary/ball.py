@@ -1,6 +1,6 @@
 """The trained HGCN's layers in numpy, for quantising descriptors at run time.
 
-The same Poincare-ball operations as :mod:`orbslam_hgcn.vocabulary.hyperbolic` (Ganea et
+The same Poincare-ball operations as :mod:`orbslam_hgcn.vocabulary.training.hyperbolic` (Ganea et
 al., NeurIPS 2018; the numerical guards of Chami et al.'s ``PoincareBall``) in float32
 numpy, so that a vocabulary file can be used without torch. Only what the network needs
 for one descriptor seen as a graph of its own (:class:`BallNetwork`): the hyperbolic
@@ -89,7 +89,7 @@ def hyp_linear(v: np.ndarray, weight: np.ndarray, bias: np.ndarray, c: float) ->
 
 @dataclass
 class BallNetwork:
-    """The trained layers of an HGCN (see :class:`orbslam_hgcn.vocabulary.hgcn.HGCN`).
+    """The trained layers of an HGCN (see :class:`orbslam_hgcn.vocabulary.training.hgcn.HGCN`).
 
     weights, biases: per layer, the neighbourhood path's (d_out, d_in) and (d_out,) arrays;
     self_weights, self_biases: the same for the residual self path (empty lists when the

@@ -3,7 +3,7 @@
 Every vocabulary turns descriptors into words (``transform_words``), words into a TF-IDF
 :class:`~orbslam_hgcn.vocabulary.bow.BowVector` and a
 :class:`~orbslam_hgcn.vocabulary.bow.FeatureVector` (``transform``), scores two vectors
-(``score``) and is saved as one versioned file (``save`` / :func:`load_vocabulary`). The
+(``score``) and is saved as one versioned file (``save`` / :func:`~orbslam_hgcn.vocabulary.loading.load_vocabulary`). The
 rest of the system never needs to know which kind it holds.
 
 File format (version 2): one ``.npz`` (zip) archive holding
@@ -27,7 +27,6 @@ from __future__ import annotations
 import abc
 import dataclasses
 import datetime
-import importlib
 import json
 import logging
 from pathlib import Path
@@ -36,7 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from orbslam_hgcn.errors import VocabularyError
-from orbslam_hgcn.npzfile import atomic_save_npz, read_versioned_npz
+from orbslam_hgcn.npzfile import atomic_save_npz
 from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector, l1_score
 
 log = logging.getLogger(__name__)
@@ -44,18 +43,6 @@ log = logging.getLogger(__name__)
 MAGIC = "orbslam_hgcn-vocabulary"
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
-# Kind -> module defining its class (imported when a file of that kind is loaded).
-KIND_MODULES = {
-    "orb": "orbslam_hgcn.vocabulary.orb_tree",
-    "hgcn": "orbslam_hgcn.vocabulary.hgcn_vocab",
-    "kmeans": "orbslam_hgcn.vocabulary.flat",
-}
-DATA_DIR = Path(__file__).resolve().parent.parent / "data"
-DEFAULT_FILES = {"orb": DATA_DIR / "vocab_orb_default.npz", "hgcn": DATA_DIR / "vocab_hgcn_default.npz",
-                 "kmeans": DATA_DIR / "vocab_kmeans_default.npz"}
-# Names load_vocabulary takes besides files: the default of each kind, and the ORB tree of
-# the flat vocabularies' size (k = 10, L = 4) for comparisons at equal size.
-SHIPPED = {**DEFAULT_FILES, "orb10k": DATA_DIR / "vocab_orb10k.npz"}
 
 
 @dataclasses.dataclass
@@ -221,79 +208,12 @@ class Vocabulary(abc.ABC):
             arrays[key] = np.asarray(val)
         return atomic_save_npz(path, arrays)
 
-    @classmethod
-    def load(cls, path: str | Path) -> Vocabulary:
-        """Load a vocabulary file of this class's kind (VocabularyError otherwise)."""
-        return load_vocabulary(path, expected_kind=cls.kind)
-
     def __repr__(self) -> str:
         m = self.metadata
         return f"{type(self).__name__}({m.n_words} words, {m.descriptor_type}x{m.descriptor_dim}, {m.trained_on!r})"
-
-
-def load_vocabulary(path: str | Path, expected_kind: str | None = None) -> Vocabulary:
-    """Load any vocabulary file, dispatching on its kind.
-
-    path: a vocabulary file (``.npz``, or a DBoW2 text file such as ORB-SLAM's ``ORBvoc.txt``,
-    told by a ``.txt`` name or a first line of four integers), or the name of a shipped one:
-    ``orb`` / ``hgcn`` / ``kmeans`` (the default of that kind) or ``orb10k``.
-    expected_kind: if given, a file of another kind is a VocabularyError.
-    """
-    path = Path(path)
-    if not path.exists() and str(path) in SHIPPED:
-        path = SHIPPED[str(path)]
-    from orbslam_hgcn.vocabulary import dbow2  # here: dbow2 imports this module
-
-    if dbow2.is_dbow2_text(path):  # a DBoW2 text vocabulary (ORB-SLAM's ORBvoc.txt): an ORB tree
-        if expected_kind not in (None, "orb"):
-            raise VocabularyError(f"{path}: is a DBoW2 text ('orb') vocabulary, expected {expected_kind!r}")
-        return dbow2.read_dbow2_text(path)
-    arrays = read_versioned_npz(path, "vocabulary", MAGIC, READABLE_VERSIONS, VocabularyError,
-                                "retrain it with 'orbslam-hgcn vocab train'")
-    kind = str(arrays.get("_kind", ""))
-    if kind not in KIND_MODULES:
-        raise VocabularyError(f"{path}: unknown vocabulary kind {kind!r} (known: {', '.join(KIND_MODULES)})")
-    if expected_kind is not None and kind != expected_kind:
-        raise VocabularyError(f"{path}: is a {kind!r} vocabulary, expected {expected_kind!r}")
-    meta_text = arrays.get("_metadata")
-    if meta_text is None:
-        raise VocabularyError(f"{path}: vocabulary metadata missing")
-    metadata = VocabularyMetadata.from_json(str(meta_text), path)
-    cls = vocabulary_class(kind)
-    idf = arrays.get("idf")
-    if idf is None or idf.ndim != 1 or len(idf) == 0 or not np.all(np.isfinite(idf)):
-        raise VocabularyError(f"{path}: vocabulary has no (or a damaged) 'idf' array; it is empty or corrupt")
-    if metadata.n_words != len(idf):
-        raise VocabularyError(f"{path}: metadata says {metadata.n_words} words but 'idf' holds {len(idf)}")
-    state = {k: v for k, v in arrays.items() if not k.startswith("_")}
-    vocab = cls._from_state(state, metadata, path)
-    log.info("loaded %r from %s", vocab, path)
-    return vocab
-
-
-def vocabulary_class(kind: str) -> type[Vocabulary]:
-    """The Vocabulary subclass of ``kind`` (``orb``, ``hgcn`` or ``kmeans``)."""
-    module = importlib.import_module(KIND_MODULES[kind])
-    for obj in vars(module).values():
-        if isinstance(obj, type) and issubclass(obj, Vocabulary) and getattr(obj, "kind", None) == kind:
-            return obj
-    raise VocabularyError(f"no vocabulary class of kind {kind!r}")
 
 
 def require(cond: bool, path: Path, message: str) -> None:
     """Raise a VocabularyError naming ``path`` unless ``cond`` holds (used by ``_from_state``)."""
     if not cond:
         raise VocabularyError(f"{path}: corrupt vocabulary: {message}")
-
-
-def default_vocabulary_path(kind: str) -> Path:
-    """The shipped default vocabulary file of ``kind`` (``orb``, ``hgcn`` or ``kmeans``)."""
-    if kind not in DEFAULT_FILES:
-        raise VocabularyError(f"unknown vocabulary kind {kind!r}; use one of {', '.join(DEFAULT_FILES)}")
-    return DEFAULT_FILES[kind]
-
-
-def open_vocabulary(config) -> Vocabulary:
-    """The vocabulary a :class:`~orbslam_hgcn.config.VocabularyConfig` names: its ``path``,
-    or the shipped default of its ``kind`` when the path is empty."""
-    return load_vocabulary(config.path or default_vocabulary_path(config.kind), expected_kind=config.kind)

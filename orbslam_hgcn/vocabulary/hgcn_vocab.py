@@ -8,7 +8,7 @@ Training (after "Semi-supervised Vector-Quantization in Visual SLAM using HGCN")
    K = the word count, each seeded node labelled with its nearest k-means centre; with
    track ids (descriptors of one 3D point in several images), all members of a track
    holding a seeded node share the label of the track's mean;
-4. the 2-layer HGCN (:mod:`.hgcn`) trained on the seeds, with early stopping on held-out
+4. the 2-layer HGCN (:mod:`.training.hgcn`) trained on the seeds, with early stopping on held-out
    seeds, labels every node: a word is a class, and its prototype the network's embedding
    of the class's seed centre, a point of the Poincare ball.
 
@@ -194,10 +194,10 @@ def train_hgcn_vocabulary(
     desc: (N, 32) uint8 ORB or (N, D) float descriptors. image_ids: (N,) image of every
     descriptor (the IDF documents). track_ids: optional (N,) 3D point of every descriptor
     (-1: none). device: where the network trains (None: a GPU when torch sees one, else
-    the CPU; see :func:`~orbslam_hgcn.vocabulary.hgcn.train_hgcn`). Returns the vocabulary; ``metadata.stats`` holds the stage timings, the
+    the CPU; see :func:`~orbslam_hgcn.vocabulary.training.hgcn.train_hgcn`). Returns the vocabulary; ``metadata.stats`` holds the stage timings, the
     seed accuracies and the run-time agreement.
     """
-    from orbslam_hgcn.vocabulary.hgcn import train_hgcn  # torch: imported for training only
+    from orbslam_hgcn.vocabulary.training.hgcn import train_hgcn  # torch: imported for training only
 
     cfg = cfg or HgcnTrainConfig()
     desc, image_ids, kind = check_training_input(desc, image_ids, cfg.n_words)

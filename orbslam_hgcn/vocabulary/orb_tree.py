@@ -22,7 +22,7 @@ import numpy as np
 from orbslam_hgcn.vocabulary.base import Vocabulary, VocabularyMetadata, now_iso, require
 from orbslam_hgcn.vocabulary.bow import idf_from_documents
 from orbslam_hgcn.vocabulary.descriptors import BINARY, FLOAT, as_words64, descriptor_kind, dist_to_candidates
-from orbslam_hgcn.vocabulary.tree_build import build_tree
+from orbslam_hgcn.vocabulary.training.tree_build import build_tree
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """How the keyframes of the tracker reach local mapping and loop closing: in order on the
 calling thread, or through worker threads as ORB-SLAM runs them.
 
-Both runners offer the same small interface to :class:`~orbslam_hgcn.pipeline.system.System`:
+Both runners offer the same small interface to :class:`~orbslam_hgcn.runtime.system.System`:
 ``mapping_idle()`` (the tracker's AcceptKeyFrames), ``submit(kf)``, ``optimising`` (an
 optimisation is being solved), ``sync()`` (wait until every keyframe handed over is
 processed), ``check()`` (re-raise a stage's failure) and ``close(drain)``.
@@ -39,7 +39,7 @@ from typing import Any
 
 from orbslam_hgcn.backend.solver import InProcessSolver, ProcessSolver
 from orbslam_hgcn.map import KeyFrame
-from orbslam_hgcn.pipeline.worker import Worker, WorkerError
+from orbslam_hgcn.runtime.worker import Worker, WorkerError
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """Compare visual vocabularies end to end: the ``orbslam-hgcn compare`` command.
 
 Runs the whole system (loop closing on) N times per vocabulary over one dataset through
-:func:`~orbslam_hgcn.pipeline.run.run_dataset`, each run in its own folder
+:func:`~orbslam_hgcn.app.run.run_dataset`, each run in its own folder
 ``OUT/<vocab>/run<i>``, and summarises per vocabulary: keyframe ATE after Sim(3)
 alignment (Umeyama 1991; median, min, max over the runs), loops closed, frames lost and
 frames per second. Writes ``OUT/compare.md`` (Markdown tables), ``OUT/compare.json`` and
@@ -29,10 +29,12 @@ from typing import Any
 
 import numpy as np
 
+from orbslam_hgcn.app.processes import run_argv, run_processes
 from orbslam_hgcn.config import ThreadsConfig
 from orbslam_hgcn.datasets import detect_kind
+from orbslam_hgcn.engine import Engine
 from orbslam_hgcn.errors import ConfigError, OrbslamError, Terminated
-from orbslam_hgcn.pipeline.results import check_output_folder
+from orbslam_hgcn.runtime.results import check_output_folder
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +113,7 @@ def outcome_from_stats(vocab: str, run: int, out: Path, stats: dict[str, Any]) -
 def check_vocabulary(v: str, base: Path, loc: str = "--vocabs") -> str:
     """The vocabulary argument of a run: a shipped name, or an absolute file path (relative
     ones from ``base``); a ConfigError at ``loc`` when it is neither."""
-    from orbslam_hgcn.vocabulary.base import SHIPPED
+    from orbslam_hgcn.vocabulary.loading import SHIPPED
 
     if v in SHIPPED:
         return v
@@ -253,9 +255,6 @@ def format_markdown(c: Comparison) -> str:
 def _runs_on_engine(path, out, kind, config, runs, vocabs, max_frames, sequential, speed, jobs, address, on_run):
     """The runs of a comparison as processes on the sweep's engine: (outcomes in table
     order, dataset name, how the stages ran, interrupted)."""
-    from orbslam_hgcn.pipeline.engine import Engine
-    from orbslam_hgcn.pipeline.sweep import run_argv, run_processes
-
     if config is not None:
         from orbslam_hgcn.config import resolve_config
 
@@ -311,14 +310,14 @@ def run_comparison(
     ``threads.speed``; see :func:`run_dataset`). run_fn: replaces
     :func:`run_dataset` (same arguments), for tests. on_run: called with each run's
     outcome as soon as it is known (progress printing). jobs, address: make each run an
-    ``orbslam-hgcn run`` process on the sweep's engine (:mod:`orbslam_hgcn.pipeline.sweep`:
+    ``orbslam-hgcn run`` process on the sweep's engine (:mod:`orbslam_hgcn.app.sweep`:
     a local Ray instance with ``jobs`` runs at a time, the Ray cluster at ``address``, or in
     order without Ray), the same folders and tables; a killed run is made once more.
     """
     import inspect
 
     from orbslam_hgcn.evaluation.plots import box_plot
-    from orbslam_hgcn.pipeline.run import run_dataset
+    from orbslam_hgcn.app.run import run_dataset
 
     if runs < 1:
         raise ConfigError(f"--runs must be at least 1, found {runs}")

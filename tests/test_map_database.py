@@ -3,7 +3,8 @@ hand-made BoW vectors with hand-computed answers."""
 
 import pytest
 
-from orbslam_hgcn.vocabulary import BowVector, KeyframeDatabase
+from orbslam_hgcn.map.database import KeyframeDatabase
+from orbslam_hgcn.vocabulary import BowVector
 
 
 def _bow(words):

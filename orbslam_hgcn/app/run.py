@@ -9,7 +9,7 @@ A run never loses what it computed: whatever ends it (an unreadable frame with
 ``--on-bad-frame stop``, a worker thread or child process failing, Ctrl-C, SIGTERM, a bug)
 the results of the frames processed are written, ``stats.json`` says ``"complete": false``
 and why (``"end"``), and the command exits with the status of that ending
-(:data:`~orbslam_hgcn.pipeline.ending.EXIT_STATUS`). The output folder is checked before the first frame.
+(:data:`~orbslam_hgcn.app.ending.EXIT_STATUS`). The output folder is checked before the first frame.
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ from orbslam_hgcn.config import dataset_settings, load_camera, load_yaml, resolv
 from orbslam_hgcn.datasets import detect_kind, open_sequence
 from orbslam_hgcn.errors import FrameError, OrbslamError, StageError, VocabularyError
 from orbslam_hgcn.geometry.camera import PinholeCamera
-from orbslam_hgcn.pipeline.ending import RunEnd
-from orbslam_hgcn.pipeline.results import check_output_file, check_output_folder
-from orbslam_hgcn.pipeline.system import TERMINATED, Configs, System
+from orbslam_hgcn.app.ending import RunEnd
+from orbslam_hgcn.runtime.results import check_output_file, check_output_folder
+from orbslam_hgcn.runtime.system import TERMINATED, Configs, System
 from orbslam_hgcn.trajectory import Trajectory
 from orbslam_hgcn.viz.sinks import parse_rerun_arg
 
@@ -153,7 +153,7 @@ def run_dataset(
     ``["connect", "HOST:PORT"]``) to visualise the run in rerun as it goes
     (:mod:`orbslam_hgcn.viz.live`); None: no visualisation.
 
-    ``load_map``: start from a saved map (:mod:`orbslam_hgcn.pipeline.mapfile`),
+    ``load_map``: start from a saved map (:mod:`orbslam_hgcn.app.mapfile`),
     relocalising on it first; ``vocab`` then defaults to the map's vocabulary.
     ``localization``: with ``load_map``, track without changing the map. ``save_map``:
     write the map at the end (also listed in ``paths`` as ``map``).
@@ -186,7 +186,7 @@ def run_dataset(
     if localization and load_map is None:
         raise OrbslamError("--localization needs a saved map: --load-map FILE")
     if load_map is not None:
-        from orbslam_hgcn.pipeline.mapfile import install_map, load_map as read_saved_map, map_vocabulary_name
+        from orbslam_hgcn.app.mapfile import install_map, load_map as read_saved_map, map_vocabulary_name
 
         vocab = vocab or map_vocabulary_name(load_map)  # by default the vocabulary the map was built with
     vocabulary = open_vocabulary(vocab, loop_closing or load_map is not None)
@@ -258,7 +258,7 @@ def run_dataset(
     except OSError as exc:
         raise OrbslamError(f"{out}: cannot write the results ({exc.strerror or exc})") from None
     if save_map is not None:
-        from orbslam_hgcn.pipeline.mapfile import save_system_map
+        from orbslam_hgcn.app.mapfile import save_system_map
 
         try:
             paths["map"] = save_system_map(save_map, system, vocab)

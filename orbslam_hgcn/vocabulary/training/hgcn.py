@@ -49,7 +49,7 @@ from tqdm import tqdm
 
 from orbslam_hgcn.config import HgcnTrainConfig
 from orbslam_hgcn.errors import ConfigError
-from orbslam_hgcn.vocabulary import hyperbolic as hyp
+from orbslam_hgcn.vocabulary.training import hyperbolic as hyp
 from orbslam_hgcn.vocabulary.ball import BallNetwork
 from orbslam_hgcn.vocabulary.graph import two_hop_blocks
 
@@ -141,7 +141,7 @@ class HGCNLayer(nn.Module):
                         self_rows: torch.Tensor | None = None) -> torch.Tensor:
         """:meth:`forward` on tangent vectors at the origin: v = log_0(x) in, log_0(output)
         out (``log_0(proj(exp_0(s)))`` is the norm cap
-        :func:`~orbslam_hgcn.vocabulary.hyperbolic.clip_tangent`), with half the
+        :func:`~orbslam_hgcn.vocabulary.training.hyperbolic.clip_tangent`), with half the
         element-wise operations, which dominate the training time on a CPU."""
         h = self.linear.forward_tangent(v, c_in)
         t = self.act(hyp.clip_tangent(torch.sparse.mm(adj, hyp.logmap0(h, c_in)), c_in))

@@ -30,8 +30,8 @@ from orbslam_hgcn.config import HgcnTrainConfig, ORBConfig, TreeTrainConfig
 from orbslam_hgcn.datasets.base import IMAGE_SUFFIXES
 from orbslam_hgcn.errors import ConfigError, DatasetError, OrbslamError, VocabularyError
 from orbslam_hgcn.npzfile import atomic_save_npz, read_npz
-from orbslam_hgcn.pipeline.engine import Engine
-from orbslam_hgcn.pipeline.results import check_output_file
+from orbslam_hgcn.engine import Engine
+from orbslam_hgcn.runtime.results import check_output_file
 from orbslam_hgcn.vocabulary.base import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -283,10 +283,10 @@ def train_from_images(
     """Extract descriptors from image sources, train a vocabulary and save it to ``out``.
 
     tracks: (hgcn) match consecutive images of each source into feature tracks whose
-    descriptors share their seed label (see :mod:`orbslam_hgcn.vocabulary.tracks`).
+    descriptors share their seed label (see :mod:`orbslam_hgcn.vocabulary.training.tracks`).
     device: the torch device of HGCN training (None or ``auto``: a GPU when torch sees one).
     jobs, address: extract the descriptors in shards on Ray (a local instance with ``jobs``
-    CPUs, or the cluster at ``address``; :mod:`orbslam_hgcn.pipeline.engine`), when
+    CPUs, or the cluster at ``address``; :mod:`orbslam_hgcn.engine`), when
     ``jobs`` > 1 or ``address`` is given; else in this process.
     """
     if not images:
@@ -311,7 +311,7 @@ def train_from_images(
     t_extract = time.perf_counter() - t0
     track_ids = None
     if tracks and kind == "hgcn":
-        from orbslam_hgcn.vocabulary.tracks import build_tracks
+        from orbslam_hgcn.vocabulary.training.tracks import build_tracks
 
         track_ids = build_tracks(*data.per_image(), data.groups, progress=progress)
     t_tracks = time.perf_counter() - t0 - t_extract

@@ -1,4 +1,4 @@
-"""ORB extraction in a child process (threaded runs of :class:`~orbslam_hgcn.pipeline.system.System`).
+"""ORB extraction in a child process (threaded runs of :class:`~orbslam_hgcn.runtime.system.System`).
 
 Extraction is a chain of OpenCV calls with Python between them (reading the FAST corner
 scores, the quadtree, the keypoint objects handed to the descriptor). OpenCV releases the

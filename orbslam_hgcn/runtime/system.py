@@ -3,7 +3,7 @@ loop closing, in order or in worker threads.
 
 :class:`System` is the only place that knows every stage. The stages meet only here: the
 tracker returns its new keyframes, :meth:`System._on_keyframe` hands each to a stage runner
-(:mod:`orbslam_hgcn.pipeline.stages`), which passes it to the local mapper and the keyframes
+(:mod:`orbslam_hgcn.runtime.stages`), which passes it to the local mapper and the keyframes
 it keeps to the loop closer, if one is plugged in (any object with ``process(keyframe)``).
 
 Sequential mode (``ThreadsConfig.sequential``, the default of the class): a keyframe is
@@ -23,7 +23,7 @@ On a machine with few cores the real-time path goes first: the BA processes and 
 threads run at a lower CPU priority (``threads.solver_nice``, ``threads.worker_nice``).
 Threads and processes live from the first frame to :meth:`System.close`,
 which :meth:`System.run` calls at its end (also on Ctrl-C or an error); a stage's exception
-is raised in the caller's thread as a :class:`~orbslam_hgcn.pipeline.worker.WorkerError`.
+is raised in the caller's thread as a :class:`~orbslam_hgcn.runtime.worker.WorkerError`.
 """
 
 from __future__ import annotations
@@ -71,20 +71,20 @@ from orbslam_hgcn.map import Frame, KeyFrame, Map
 from orbslam_hgcn.map.atlas import Atlas
 from orbslam_hgcn.mapping.local_mapper import LocalMapper
 from orbslam_hgcn.match import matching, projection_search
-from orbslam_hgcn.pipeline.extraction import ExtractionError, ExtractionProcess, warm_up_extractors
-from orbslam_hgcn.pipeline.locks import TrackingFirstLock, first
-from orbslam_hgcn.pipeline.results import (
+from orbslam_hgcn.runtime.extraction import ExtractionError, ExtractionProcess, warm_up_extractors
+from orbslam_hgcn.runtime.locks import TrackingFirstLock, first
+from orbslam_hgcn.runtime.results import (
     camera_trajectory,
     frame_counts,
     keyframe_trajectory,
     summary_ms,
     write_outputs,
 )
-from orbslam_hgcn.pipeline.stages import SequentialStages, ThreadedStages
+from orbslam_hgcn.runtime.stages import SequentialStages, ThreadedStages
 from orbslam_hgcn.tracking.relocalization import Relocalizer
 from orbslam_hgcn.tracking.tracker import Tracker, TrackingState, TrackResult
 from orbslam_hgcn.trajectory import Trajectory, write_tum
-from orbslam_hgcn.vocabulary.database import KeyframeDatabase
+from orbslam_hgcn.map.database import KeyframeDatabase
 
 log = logging.getLogger(__name__)
 

@@ -26,7 +26,7 @@ from orbslam_hgcn.errors import VocabularyError
 from orbslam_hgcn.map import Map
 from orbslam_hgcn.map.io import MapFile, MapFileError, read_header, read_map, save_map
 from orbslam_hgcn.tracking.tracker import TrackingState
-from orbslam_hgcn.vocabulary.base import SHIPPED
+from orbslam_hgcn.vocabulary.loading import SHIPPED
 from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector
 
 log = logging.getLogger(__name__)

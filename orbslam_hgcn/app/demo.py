@@ -5,7 +5,7 @@ defaults: 30 s, 900 frames, TUM fr3 camera, exact ground truth) into a cache fol
 and reused afterwards (written atomically: a render interrupted on the first use is
 simply made again on the next); runs the system with loop closing, first with the shipped HGCN
 vocabulary and then with the shipped ORB tree, printing each run's ATE as it ends; and
-prints the comparison (:mod:`orbslam_hgcn.pipeline.compare`). The first run is recorded
+prints the comparison (:mod:`orbslam_hgcn.app.compare`). The first run is recorded
 for rerun (``OUT/demo.rrd`` by default).
 """
 
@@ -18,8 +18,8 @@ from pathlib import Path
 
 from orbslam_hgcn.config import ThreadsConfig
 from orbslam_hgcn.errors import ConfigError
-from orbslam_hgcn.pipeline.compare import Comparison, RunOutcome, describe_run, format_markdown, run_comparison
-from orbslam_hgcn.pipeline.results import check_output_folder
+from orbslam_hgcn.app.compare import Comparison, RunOutcome, describe_run, format_markdown, run_comparison
+from orbslam_hgcn.runtime.results import check_output_folder
 from orbslam_hgcn.viz.sinks import parse_rerun_arg
 
 log = logging.getLogger(__name__)
