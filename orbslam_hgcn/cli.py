@@ -120,7 +120,7 @@ def _run_eval(args: argparse.Namespace) -> int:
 
     from orbslam_hgcn.evaluation.ate import evaluate
     from orbslam_hgcn.evaluation.report import format_table, write_report
-    from orbslam_hgcn.runtime.results import check_output_folder
+    from orbslam_hgcn.outputs import check_output_folder
     from orbslam_hgcn.trajectory import read_tum
 
     gt_path, est_path = Path(args.gt), Path(args.est)
@@ -207,7 +207,7 @@ def _run_lcd(args: argparse.Namespace) -> int:
 
     from orbslam_hgcn.config import FabmapConfig, load_yaml, section_from_yaml
     from orbslam_hgcn.errors import ConfigError
-    from orbslam_hgcn.runtime.results import check_output_folder
+    from orbslam_hgcn.outputs import check_output_folder
     from orbslam_hgcn.placerec import lcd
 
     check_output_folder(args.out)
@@ -353,7 +353,7 @@ def _run_synth(args: argparse.Namespace) -> int:
         "repeated_texture": args.repeated_texture, "texel_scale": args.texel_scale, "loop_gt": args.loop_gt,
         "depth": args.depth, "laps": args.laps,
     }
-    from orbslam_hgcn.runtime.results import check_output_folder
+    from orbslam_hgcn.outputs import check_output_folder
 
     options = synth_options(args.preset, **{k: v for k, v in given.items() if v is not None})
     out = render_sequence(check_output_folder(args.out), options, force=args.force)
@@ -526,7 +526,7 @@ def _run_vocab_info(args: argparse.Namespace) -> int:
 
 
 def _run_vocab_export(args: argparse.Namespace) -> int:
-    from orbslam_hgcn.runtime.results import check_output_file
+    from orbslam_hgcn.outputs import check_output_file
     from orbslam_hgcn.vocabulary import load_vocabulary
     from orbslam_hgcn.vocabulary.dbow2 import write_dbow2_text
 

@@ -150,7 +150,8 @@ def test_hgcn_uses_the_track_graph_where_a_lone_descriptor_is_ambiguous():
     model, pred, stats = train_hgcn(x, adj, labels, seed_centres, cfg, groups=track, progress=False)
     assert np.mean(pred[~seeded] == truth[~seeded]) >= 0.9
     assert stats["hgcn_best_epoch"] > 0 and all(c > 0 for c in stats["curvatures"])
-    _, identity_pred, _ = train_hgcn(x, adj, labels, seed_centres, dataclasses.replace(cfg, epochs=0),
+    # The untrained network: one epoch that cannot move the layers (learning rates 0).
+    _, identity_pred, _ = train_hgcn(x, adj, labels, seed_centres, dataclasses.replace(cfg, epochs=1, lr=0.0, scale_lr=0.0),
                                      groups=track, progress=False)
     assert np.mean(identity_pred[~seeded] == truth[~seeded]) < 0.7
     # The numpy copy of the layers gives the torch model's embeddings.

@@ -34,7 +34,7 @@ from orbslam_hgcn.config import ThreadsConfig
 from orbslam_hgcn.datasets import detect_kind
 from orbslam_hgcn.engine import Engine
 from orbslam_hgcn.errors import ConfigError, OrbslamError, Terminated
-from orbslam_hgcn.runtime.results import check_output_folder
+from orbslam_hgcn.outputs import check_output_folder
 
 log = logging.getLogger(__name__)
 

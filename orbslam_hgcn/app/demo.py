@@ -19,7 +19,7 @@ from pathlib import Path
 from orbslam_hgcn.config import ThreadsConfig
 from orbslam_hgcn.errors import ConfigError
 from orbslam_hgcn.app.compare import Comparison, RunOutcome, describe_run, format_markdown, run_comparison
-from orbslam_hgcn.runtime.results import check_output_folder
+from orbslam_hgcn.outputs import check_output_folder
 from orbslam_hgcn.viz.sinks import parse_rerun_arg
 
 log = logging.getLogger(__name__)

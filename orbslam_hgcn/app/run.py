@@ -30,7 +30,7 @@ from orbslam_hgcn.datasets import detect_kind, open_sequence
 from orbslam_hgcn.errors import FrameError, OrbslamError, StageError, VocabularyError
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.app.ending import RunEnd
-from orbslam_hgcn.runtime.results import check_output_file, check_output_folder
+from orbslam_hgcn.outputs import check_output_file, check_output_folder
 from orbslam_hgcn.runtime.system import TERMINATED, Configs, System
 from orbslam_hgcn.trajectory import Trajectory
 from orbslam_hgcn.viz.sinks import parse_rerun_arg

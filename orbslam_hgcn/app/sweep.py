@@ -58,7 +58,7 @@ from orbslam_hgcn.app.compare import (
 )
 from orbslam_hgcn.app.processes import finished_stats, run_argv, run_processes
 from orbslam_hgcn.engine import Engine
-from orbslam_hgcn.runtime.results import check_output_folder
+from orbslam_hgcn.outputs import check_output_folder
 
 log = logging.getLogger(__name__)
 

@@ -31,7 +31,7 @@ from orbslam_hgcn.datasets.base import IMAGE_SUFFIXES
 from orbslam_hgcn.errors import ConfigError, DatasetError, OrbslamError, VocabularyError
 from orbslam_hgcn.npzfile import atomic_save_npz, read_npz
 from orbslam_hgcn.engine import Engine
-from orbslam_hgcn.runtime.results import check_output_file
+from orbslam_hgcn.outputs import check_output_file
 from orbslam_hgcn.vocabulary.base import Vocabulary
 
 log = logging.getLogger(__name__)
