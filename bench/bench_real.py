@@ -228,7 +228,10 @@ def main() -> int:
     ap.add_argument("--args", default="", help="extra arguments for orbslam-hgcn run, e.g. \"--vocab orb\"")
     ap.add_argument("--cache", default=os.path.expanduser("~/.cache/orbslam_hgcn"))
     ap.add_argument("--json", default=None, help="also write every run's figures to this file")
+    ap.add_argument("--record", default=None, metavar="NAME",
+                    help="write the figures the README quotes to bench/results/NAME.json (bench/figures.py)")
     a = ap.parse_args()
+    load_start = os.getloadavg()[0]
     extra = shlex.split(a.args)
     cache = Path(a.cache)
     cache.mkdir(parents=True, exist_ok=True)
@@ -267,7 +270,36 @@ def main() -> int:
         results[f"{name}/{load}/{mode}"] = rows
     if a.json:
         Path(a.json).write_text(json.dumps(results, indent=2) + "\n")
+    if a.record:
+        _record(a.record, results, a.args, load_start)
     return 0
+
+
+def _span(rows: list[dict], key: str, fmt: str) -> str:
+    v = sorted(r[key] for r in rows if r.get(key) is not None and np.isfinite(r[key]))
+    if not v:
+        return "n/a"
+    return format(v[0], fmt) if v[0] == v[-1] else f"{v[0]:{fmt}}-{v[-1]:{fmt}} (median {np.median(v):{fmt}})"
+
+
+def _record(name: str, results: dict, extra: str, load_start: float) -> None:
+    """The README's figures of this bench: one group per sequence, load and mode."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import figures
+
+    figs = []
+    for key, rows in results.items():
+        if not rows:
+            figs.append((key, "every run failed"))
+            continue
+        tracked = sorted(round(r["tracked_share"] * r["frames"]) for r in rows)
+        figs.append((key, f"{len(rows)} runs: tracked {tracked[0]}-{tracked[-1]} of {rows[0]['frames']} frames, "
+                          f"resets {sum(r['resets'] for r in rows)}, lost events {sum(r.get('lost_events') or 0 for r in rows)}, "
+                          f"dropped {sum(r['dropped'] for r in rows)}, keyframe ATE {_span(rows, 'kf_ate_cm', '.2f')} cm, "
+                          f"camera ATE {_span(rows, 'cam_ate_cm', '.2f')} cm, real-time factor {_span(rows, 'rtf', '.2f')}, "
+                          f"frame latency p95 {_span(rows, 'latency_p95_ms', '.0f')} ms"))  # fmt: skip
+    title = "`orbslam-hgcn run` defaults" + (f" with `{extra}`" if extra else "")
+    figures.record(name, title, figs, bench_file=__file__, load_start=load_start)
 
 
 if __name__ == "__main__":

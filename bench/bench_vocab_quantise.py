@@ -103,9 +103,10 @@ def flat_layout(desc: np.ndarray, words: int) -> tuple[KMeansVocabulary, KMeansV
             KMeansVocabulary(pca, cent, coarse, wc, np.zeros((0, 20), np.float32), 0, idf, meta))
 
 
-def system_runs(vocabs: list[str], reps: int, frames: int) -> None:
+def system_runs(vocabs: list[str], reps: int, frames: int, record: str | None = None) -> None:
     """Run the system on KITTI once per vocabulary and repeat (interleaved) and print the
     local mapping steps a keyframe pays for its words (see the module docstring)."""
+    load_start = os.getloadavg()[0]
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     rows: dict[str, list[dict]] = {v: [] for v in vocabs}
     with tempfile.TemporaryDirectory() as tmp:
@@ -142,6 +143,20 @@ def system_runs(vocabs: list[str], reps: int, frames: int) -> None:
         print(f"  {v} per run: " + "; ".join(
             f"words {row['words']:.1f} (CPU {row['words_cpu']:.1f}) insert {row['insert']:.1f} fps {row['fps']:.1f}"
             for row in rows[v]))
+    if record:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        import figures
+
+        figs = []
+        for v in vocabs:
+            m = med[v]
+            x = (lambda k: f" ({m[k] / ref[k]:.2f}x orb)") if ref and v != "orb" else (lambda k: "")
+            figs.append((v, f"words {m['words_cpu']:.1f} ms CPU{x('words_cpu')}, insert step {m['insert']:.1f} ms"
+                            f"{x('insert')}, {m['fps']:.1f} frames/s{x('fps')}, tracked {100 * m['tracked']:.1f}%, "
+                            f"keyframe ATE {m['ate_cm']:.2f} cm"))  # fmt: skip
+        figures.record(record, f"Words a KITTI keyframe pays in the running system ({frames} frames, unpaced, "
+                               f"median of {reps} run(s) per vocabulary)", figs, bench_file=__file__,
+                       load_start=load_start)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -157,9 +172,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--system-vocabs", nargs="+", default=["orb", "hgcn", "kmeans"])
     ap.add_argument("--system-reps", type=int, default=1)
     ap.add_argument("--system-frames", type=int, default=160)
+    ap.add_argument("--record", default=None, metavar="NAME",
+                    help="with --system-only: write the in-system figures to bench/results/NAME.json (bench/figures.py)")
     args = ap.parse_args(argv)
     if args.system_only:
-        system_runs(args.system_vocabs, args.system_reps, args.system_frames)
+        system_runs(args.system_vocabs, args.system_reps, args.system_frames, args.record)
         return 0
     if args.threads > 0:
         faiss.omp_set_num_threads(args.threads)
