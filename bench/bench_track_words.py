@@ -49,7 +49,8 @@ from bench_place_recognition import loop_truth, pr_curve, two_lap_trajectory  # 
 from orbslam_hgcn.datasets import open_sequence  # noqa: E402
 from orbslam_hgcn.features.orb import ORBExtractor  # noqa: E402
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence  # noqa: E402
-from orbslam_hgcn.vocabulary import KeyframeDatabase, load_vocabulary  # noqa: E402
+from orbslam_hgcn.map.database import KeyframeDatabase  # noqa: E402
+from orbslam_hgcn.vocabulary import load_vocabulary  # noqa: E402
 from orbslam_hgcn.vocabulary.training.tracks import build_tracks  # noqa: E402
 
 ARMS = ("A0", "A1", "B0", "B0h", "orb")

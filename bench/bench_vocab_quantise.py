@@ -53,7 +53,8 @@ import numpy as np
 
 from orbslam_hgcn.features.orb import ORBExtractor
 from orbslam_hgcn.vocabulary import graph, load_vocabulary
-from orbslam_hgcn.vocabulary.base import DEFAULT_FILES, VocabularyMetadata
+from orbslam_hgcn.vocabulary.base import VocabularyMetadata
+from orbslam_hgcn.vocabulary.loading import DEFAULT_FILES
 from orbslam_hgcn.vocabulary.graph import fit_pca
 from orbslam_hgcn.vocabulary.flat import KMeansVocabulary, kmeans, nearest
 from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
