@@ -201,11 +201,10 @@ def test_a_due_keyframe_is_mapped_before_tracking_loses_the_map(kitti_sample):
     tracks fewer than keyframe_urgent_inliers points and mapping is busy, the tracker
     waits (at most threads.keyframe_wait_s) for mapping to take a keyframe, makes it from
     that frame and waits for its points, and the frames that arrive meanwhile wait: the
-    run keeps its map through the stall. Without that wait either, the same run is lost
-    for good on the fourth frame after the stall began (3 of 3)."""
+    run keeps its map through the stall. (Without that wait the same run was lost in some
+    runs and not in others, depending on where the stall falls among the frames, so this
+    test does not assert the run without it.)"""
     s = _stalled_mapping_run(kitti_sample, sync_mapping_s=0.0, keyframe_wait_s=0.5).stats()
     assert s["map_resets"] == 0 and s["frames"]["lost"] == 0, s["frames"]
     assert s["timing_ms"]["keyframe_wait"]["count"] > 0
     assert s["frames"]["tracked"] == 50 and s["frames"]["dropped"] == 0, s["frames"]
-    no_wait = _stalled_mapping_run(kitti_sample, sync_mapping_s=0.0, keyframe_wait_s=0.0).stats()
-    assert no_wait["map_resets"] > 0 or no_wait["frames"]["lost"] > 10, no_wait["frames"]
