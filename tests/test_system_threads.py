@@ -76,10 +76,10 @@ def threaded_run(seq):
 
 
 def test_threaded_run_with_mapping_sync_equals_the_sequential_run(seq, sequential_runs):
-    """With threads.sync_mapping_s (default 5 s) a paced threaded run gives the sequential
-    run's result, bit for bit: the frames that arrive while mapping finishes a keyframe
-    wait, none is dropped."""
-    system = System(seq.camera, sequential=False)
+    """With threads.mapping_sync "each" (within sync_mapping_s, default 5 s) a paced
+    threaded run gives the sequential run's result, bit for bit: the frames that arrive
+    while mapping finishes a keyframe wait, none is dropped."""
+    system = System(seq.camera, _threads(mapping_sync="each"), sequential=False)
     system.run(seq, N_FRAMES, progress=False)
     ref = sequential_runs[0]
     for get in (System.keyframe_trajectory, System.camera_trajectory):
@@ -114,8 +114,8 @@ def _slow_mapping_run(seq, until_starved: bool = False, **threads) -> tuple[Syst
         release.set()
         return starved(*args)
 
-    def recorded(frame, n_in):
-        kf = keyframe_now(frame, n_in)
+    def recorded(frame, n_in, *args):
+        kf = keyframe_now(frame, n_in, *args)
         if kf is not None:
             made_after_wait.append(kf.frame_id)
         return kf
@@ -139,23 +139,30 @@ def _camera_pose_errors(seq, system: System) -> tuple[np.ndarray, np.ndarray]:
     return ev.ate_errors, ev.ate_errors[is_kf]
 
 
-def test_camera_poses_of_a_slow_mapping_run_are_as_good_as_its_keyframes(seq):
+@pytest.mark.parametrize("mapping_sync", ["due", "each"])
+def test_camera_poses_of_a_slow_mapping_run_are_as_good_as_its_keyframes(seq, mapping_sync):
     """Local BA moves keyframes after frames were written relative to them, and mapping
-    stalls for 1.5 s: the tracker waits for each keyframe to be mapped
-    (threads.sync_mapping_s), so that no frame is tracked against a stale local map, and
-    the written poses stay as good as the keyframes': camera ATE within 1.1 times the
-    keyframes' (or 0.5 mm more), no frame off by more than 3 times the keyframes' largest
-    error, and camera ATE under 4 mm (2.5 mm here). Tracking on without the wait
-    (sync_mapping_s 0, as ORB-SLAM's threads), the frames of the stall are tracked against
+    stalls for 1.5 s: the tracker waits for the stalled keyframe to be mapped (threads.
+    sync_mapping_s; "due": when the next keyframe is due, "each": before the next frame),
+    so that the frames of the stall are not tracked on against a stale local map, and the
+    written poses stay as good as the keyframes': camera ATE within 1.1 times the
+    keyframes' (or 0.5 mm more) and no frame off by more than 3 times the keyframes'
+    largest error; with "each" (no frame tracked without the newest keyframe's points)
+    camera ATE under 4 mm (2.5 mm here, keyframes 3.9 mm; "due" 4.3-5.0 mm, keyframes
+    6.2 mm: with mapping 0.1 s slower per keyframe, the frames after each keyframe are
+    tracked without its new points). Tracking on without the wait (sync_mapping_s 0, as ORB-SLAM's threads), the frames of the stall are tracked against
     a stale local map: camera ATE 5.1 mm, max 10.7 mm, against keyframes' 4.3 and 5.5 mm."""
-    system, _ = _slow_mapping_run(seq)
+    system, _ = _slow_mapping_run(seq, mapping_sync=mapping_sync)
     assert system.timings["mapping_sync"] and max(system.timings["mapping_sync"]) > 1000.0  # the stall
     cam, kf = _camera_pose_errors(seq, system)
     rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
+    print(f"{mapping_sync}: camera ATE {1000 * rms(cam):.2f} mm (max {1000 * cam.max():.2f}), "
+          f"keyframes {1000 * rms(kf):.2f} mm (max {1000 * kf.max():.2f})")
     assert len(kf) >= 4
     assert rms(cam) <= 1.1 * rms(kf) + 0.0005, (rms(cam), rms(kf))
     assert cam.max() <= 3.0 * kf.max(), (cam.max(), kf.max())
-    assert rms(cam) < 0.004, rms(cam)
+    if mapping_sync == "each":
+        assert rms(cam) < 0.004, rms(cam)
     _assert_nothing_left()
 
 

@@ -206,6 +206,12 @@ def test_keyframe_rules():
     assert not keyframe_starved(KeyFrameQuery(**busy), cfg)  # only 5 frames since the last
     assert not keyframe_starved(KeyFrameQuery(**{**base, "last_kf_frame_id": 70}), cfg)  # mapping takes it
     assert not keyframe_starved(KeyFrameQuery(**{**busy, "last_kf_frame_id": 70, "n_inliers": 190}), cfg)  # c2
+    # on_interval: due by c1b's frame count and interval too (the mapping's one keyframe in
+    # flight is not finished when the next is due).
+    assert keyframe_starved(KeyFrameQuery(**busy), cfg, on_interval=True)
+    assert not keyframe_starved(KeyFrameQuery(**{**timed, "last_kf_timestamp": 9.8, "mapping_idle": False}), cfg,
+                                on_interval=True)  # within the interval
+    assert not keyframe_starved(KeyFrameQuery(**{**busy, "n_inliers": 190}), cfg, on_interval=True)  # c2
     # c1c: fewer than keyframe_urgent_inliers (60) tracked points: a keyframe within the
     # interval, and a starved tracker when mapping is busy.
     urgent = {**timed, "last_kf_timestamp": 9.8, "n_inliers": 50}

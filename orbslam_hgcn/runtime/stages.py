@@ -114,6 +114,9 @@ class SequentialStages:
     def mapping_idle(self) -> bool:
         return True  # the mapper finished the previous keyframe already
 
+    def mapping_done(self) -> bool:
+        return True
+
     @contextlib.contextmanager
     def handover(self) -> Iterator[None]:
         """Nothing runs beside the tracker."""

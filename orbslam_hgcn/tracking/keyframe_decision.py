@@ -67,31 +67,34 @@ def max_frames(config: TrackingConfig, fps: float) -> int:
     return config.max_frames if config.max_frames > 0 else max(1, int(round(fps)))
 
 
-def _conditions(q: KeyFrameQuery, config: TrackingConfig) -> tuple[bool, bool, bool, bool]:
-    """(c1a, c1b, c1c, c2); all False within the frames after a relocalisation."""
+def _conditions(q: KeyFrameQuery, config: TrackingConfig) -> tuple[bool, bool, bool, bool, bool]:
+    """(c1a, c1b, c1c, c2, c1b's frame count and interval without its idle mapping); all
+    False within the frames after a relocalisation."""
     n_max = max_frames(config, q.fps)
     if q.last_reloc_frame_id >= 0 and q.frame_id < q.last_reloc_frame_id + n_max and q.n_keyframes > n_max:
-        return False, False, False, False
+        return False, False, False, False, False
     c1a = q.frame_id >= q.last_kf_frame_id + n_max
     c1c = q.n_inliers < config.keyframe_urgent_inliers  # the local map is running out
     young = q.n_keyframes < config.min_keyframe_interval_from  # the interval applies from then on
     waited = young or not (q.timestamp - q.last_kf_timestamp < config.min_keyframe_interval_s)  # nan: no keyframe
-    c1b = q.frame_id >= q.last_kf_frame_id + config.min_frames and waited and q.mapping_idle
+    timed = q.frame_id >= q.last_kf_frame_id + config.min_frames and waited
     c2 = q.n_inliers < q.ref_tracked * config.ref_ratio and q.n_inliers > config.keyframe_min_inliers
-    return c1a, c1b, c1c, c2
+    return c1a, timed and q.mapping_idle, c1c, c2, timed
 
 
 def need_new_keyframe(q: KeyFrameQuery, config: TrackingConfig) -> bool:
     """True when the monocular keyframe rules ask for a keyframe."""
-    c1a, c1b, c1c, c2 = _conditions(q, config)
+    c1a, c1b, c1c, c2, _ = _conditions(q, config)
     # ORB-SLAM2 interrupts a running local BA and waits when mapping is busy; the caller
     # decides again on the next frame.
     return bool((c1a or c1b or c1c) and c2 and q.mapping_idle)
 
 
-def keyframe_starved(q: KeyFrameQuery, config: TrackingConfig) -> bool:
+def keyframe_starved(q: KeyFrameQuery, config: TrackingConfig, on_interval: bool = False) -> bool:
     """True when the rules ask for a keyframe by c1a (``max_frames`` frames, a second of
     camera time, since the last one) or c1c (the frame tracks fewer than
-    ``keyframe_urgent_inliers`` points) and c2, and only a busy local mapping stops it."""
-    c1a, _, c1c, c2 = _conditions(q, config)
-    return bool((c1a or c1c) and c2 and not q.mapping_idle)
+    ``keyframe_urgent_inliers`` points) and c2, and only a busy local mapping stops it.
+    With ``on_interval`` also by c1b's frame count and camera-time interval: every
+    keyframe that an idle mapping would have taken is due."""
+    c1a, _, c1c, c2, timed = _conditions(q, config)
+    return bool((c1a or c1c or (on_interval and timed)) and c2 and not q.mapping_idle)

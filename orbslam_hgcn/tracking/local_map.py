@@ -88,13 +88,14 @@ class LocalMap:
         ids = np.flatnonzero(mask).astype(np.int64)
         return ids[~m.bad_points(ids)]
 
-    def search(self, frame: Frame, grid: FeatureGrid, window: float) -> int:
+    def search(self, frame: Frame, grid: FeatureGrid, window: float, count_matched: bool = True) -> int:
         """Search the local points not yet matched in ``frame`` (ORB-SLAM2
         SearchLocalPoints): counts them as visible when they pass the frustum test and
-        links the matches. Returns the number of new matches."""
+        links the matches. Returns the number of new matches. ``count_matched``: the points
+        already matched count as visible too (False when the frame was counted before)."""
         m, cfg = self.map, self.config
         matched = frame.point_ids[frame.point_ids >= 0]
-        if len(matched):
+        if len(matched) and count_matched:
             m.increase_visible(matched)
         cand = self.point_ids
         if len(matched) and len(cand):

@@ -141,6 +141,9 @@ class Tracker:
         self.backend = backend or BackendConfig()
         self.vocabulary = vocabulary
         self.mapping_idle = mapping_idle or (lambda: True)
+        # A keyframe counts as starved (TrackResult.keyframe_starved) also when only c1b's
+        # idle mapping is missing (keyframe_decision.keyframe_starved's on_interval).
+        self.starved_on_interval = False
         self.relocalizer = relocalizer
         self.extractor = extractor
         self.init_extractor = None
@@ -459,12 +462,15 @@ class Tracker:
             return n_in >= cfg.min_inliers_relocalised, n_in
         return n_in >= cfg.min_inliers, n_in
 
-    def keyframe_now(self, frame: Frame, n_in: int) -> KeyFrame | None:
+    def keyframe_now(self, frame: Frame, n_in: int, retrack: bool = False) -> KeyFrame | None:
         """After waiting for a busy local mapping (a keyframe_starved frame): make the
         keyframe the rules asked for on ``frame``, the last frame tracked, if they still
-        ask for it now that mapping may take it; None otherwise."""
+        ask for it now that mapping may take it; None otherwise. ``retrack``: first search
+        the local map again, which now holds the points mapping made meanwhile."""
         if frame is not self.last_frame or self.state != TrackingState.OK or frame.T_cw is None:
             return None
+        if retrack:
+            n_in = self._retrack_local_map(frame)
         kf, _ = self._maybe_keyframe(frame, n_in)
         if kf is not None:
             # The frame's record was written relative to the reference keyframe it was tracked
@@ -478,6 +484,25 @@ class Tracker:
                 rec.ref_kf_id, rec.T_cr = kf.id, frame.T_cw @ kf.T_wc
             frame.ref_kf_id = kf.id
         return kf
+
+    def _retrack_local_map(self, frame: Frame) -> int:
+        """Search the local map of ``frame`` (tracked, outliers discarded) again and
+        optimise its pose; its matches counted as visible and found already are not
+        counted again. Returns the inliers."""
+        m = self.map
+        refresh_frame_points(frame, m)
+        before = frame.point_ids.copy()
+        ref = self.local_map.update(frame)
+        if ref >= 0:
+            self.ref_kf_id = ref
+        self.local_map.search(frame, FeatureGrid(frame.keypoints, frame.camera), self.config.local_window,
+                              count_matched=False)  # fmt: skip
+        optimize_frame_pose(frame, m, self.backend)
+        new = frame.matched & (before < 0)
+        if new.any():
+            m.increase_found(frame.point_ids[new])
+        discard_outliers(frame)
+        return int(np.count_nonzero(frame.point_ids >= 0))
 
     def _maybe_keyframe(self, frame: Frame, n_in: int) -> tuple[KeyFrame | None, bool]:
         """(the new keyframe or None, whether one was due but local mapping was busy)."""
@@ -500,7 +525,7 @@ class Tracker:
             last_kf_timestamp=self.last_kf_timestamp,
         )
         if not need_new_keyframe(q, self.config):
-            return None, keyframe_starved(q, self.config)
+            return None, keyframe_starved(q, self.config, self.starved_on_interval)
         keep = frame.point_ids >= 0
         if not self.config.keyframe_keeps_outliers:
             keep &= ~frame.outlier
