@@ -208,3 +208,75 @@ def test_a_due_keyframe_is_mapped_before_tracking_loses_the_map(kitti_sample):
     assert s["map_resets"] == 0 and s["frames"]["lost"] == 0, s["frames"]
     assert s["timing_ms"]["keyframe_wait"]["count"] > 0
     assert s["frames"]["tracked"] == 50 and s["frames"]["dropped"] == 0, s["frames"]
+
+
+def _mapping_stalled_until_released(kitti_sample, without_the_wait: bool) -> tuple[System, dict]:
+    """Threaded, paced run over KITTI frames 40-89 (the CLI's defaults) whose local mapping
+    stops before its seventh keyframe until released, never by the clock: by the tracker
+    entering its wait for a due keyframe (threads.mapping_sync "due"), by the track being
+    lost, or after the last frame. ``without_the_wait``: from the stall on the tracker does not
+    wait for a due keyframe, as ORB-SLAM's threads (a keyframe due while mapping is busy is
+    skipped).
+    Also how the stall ended."""
+    import threading
+
+    from orbslam_hgcn.vocabulary import load_vocabulary
+
+    seq = open_sequence("kitti", kitti_sample)
+    path, settings = dataset_settings(seq.camera, "kitti")
+    c = Configs.from_layers([(settings, path), ({"threads": {"keyframe_wait_s": 0.0}}, "test")])
+    assert c.threads.mapping_sync == "due" and c.threads.sync_mapping_s > 0  # the defaults
+    system = System(seq.camera, c, vocabulary=load_vocabulary("hgcn"), sequential=False)
+    process, track, due = system.mapper.process, system.tracker.track, system._map_due_keyframe
+    release, ended = threading.Event(), {"by": None, "frames_stalled": 0}
+    stalled = threading.Event()
+
+    def stalling(kf):
+        if kf.id == 6:
+            stalled.set()
+            release.wait(60.0)
+        return process(kf)
+
+    def end(by):
+        if stalled.is_set() and not release.is_set():
+            ended["by"] = by
+            release.set()
+
+    def tracking(frame):
+        result = track(frame)
+        ended["frames_stalled"] += int(stalled.is_set() and not release.is_set())
+        if result.lost:
+            end("lost")
+        if frame.id == 89:
+            end("last frame")
+            release.set()
+        return result
+
+    def waiting(result, stages):
+        if stalled.is_set():
+            if without_the_wait:
+                return
+            end("wait")
+        due(result, stages)
+
+    system.mapper.process, system.tracker.track, system._map_due_keyframe = stalling, tracking, waiting
+    system.run(_Slice(seq, 40, 90), progress=False)
+    assert stalled.is_set()
+    return system, ended
+
+
+@pytest.mark.parametrize("without_the_wait", [False, True])
+def test_a_keyframe_due_while_mapping_stalls_waits_and_keeps_the_track(kitti_sample, without_the_wait):
+    """Local mapping stalls (never by the clock) on a keyframe of forward driving. With the
+    defaults the next keyframe due finds it busy, the tracker waits for it there, makes that
+    keyframe and tracks every frame. Without that wait the tracker drives on over a map
+    that no longer grows, and the track is lost within the 50 frames."""
+    system, ended = _mapping_stalled_until_released(kitti_sample, without_the_wait)
+    s = system.stats()
+    if without_the_wait:
+        assert ended["by"] == "lost" and ended["frames_stalled"] > 0, ended  # lost during the stall
+        assert s["frames"]["lost"] > 0 or s["map_resets"] > 0, s["frames"]
+    else:
+        assert ended["by"] == "wait" and ended["frames_stalled"] <= 5, ended  # released by the next due keyframe
+        assert s["map_resets"] == 0 and s["frames"]["lost"] == 0, s["frames"]
+        assert s["frames"]["tracked"] == 50 and s["frames"]["dropped"] == 0, s["frames"]
