@@ -767,11 +767,14 @@ class ThreadsConfig:
     # every keyframe, until mapping has finished it (the sequential run's result; the wait
     # lands in the next frame's latency: p95 80-152 ms on KITTI 00, idle to loaded); "due"
     # only when the next keyframe is due by the rules (keyframe_decision, c1b's interval
-    # included) and mapping has not taken the previous one yet, and then the keyframe is
-    # made from that frame: at most one keyframe is in flight, no keyframe is skipped for a
-    # busy mapping, and the frames between two keyframes are tracked without waiting,
-    # against a local map that may lack the newest keyframe's new points.
-    mapping_sync: str = "due"
+    # included) and mapping has not finished the previous one, local BA included; the frame
+    # then searches the local map again and becomes the keyframe. At most one keyframe is
+    # in flight, none is skipped for a busy mapping, and the frames between two keyframes
+    # are tracked without waiting, against a local map that may lack the newest keyframe's
+    # points. "due" is not the default: on KITTI 00 beside other jobs (load average 10-16)
+    # its keyframe ATE was 37.7-53.8 cm over 9 runs (median about 46) against 38.65 cm in
+    # every "each" run, for a latency p95 that the other jobs' load left about as high.
+    mapping_sync: str = "each"
     # Threads that OpenCV's and faiss's (OpenMP) pools may start in the process that tracks
     # and maps (System.run sets them, stats.json records them; the extraction process uses
     # one OpenCV thread). 0: the libraries' own defaults (one per core). One thread was

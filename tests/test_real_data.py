@@ -224,8 +224,8 @@ def _mapping_stalled_until_released(kitti_sample, without_the_wait: bool) -> tup
 
     seq = open_sequence("kitti", kitti_sample)
     path, settings = dataset_settings(seq.camera, "kitti")
-    c = Configs.from_layers([(settings, path), ({"threads": {"keyframe_wait_s": 0.0}}, "test")])
-    assert c.threads.mapping_sync == "due" and c.threads.sync_mapping_s > 0  # the defaults
+    c = Configs.from_layers([(settings, path), ({"threads": {"keyframe_wait_s": 0.0, "mapping_sync": "due"}}, "test")])
+    assert c.threads.sync_mapping_s > 0  # the default bound
     system = System(seq.camera, c, vocabulary=load_vocabulary("hgcn"), sequential=False)
     process, track, due = system.mapper.process, system.tracker.track, system._map_due_keyframe
     release, ended = threading.Event(), {"by": None, "frames_stalled": 0}
@@ -267,8 +267,8 @@ def _mapping_stalled_until_released(kitti_sample, without_the_wait: bool) -> tup
 
 @pytest.mark.parametrize("without_the_wait", [False, True])
 def test_a_keyframe_due_while_mapping_stalls_waits_and_keeps_the_track(kitti_sample, without_the_wait):
-    """Local mapping stalls (never by the clock) on a keyframe of forward driving. With the
-    defaults the next keyframe due finds it busy, the tracker waits for it there, makes that
+    """Local mapping stalls (never by the clock) on a keyframe of forward driving. With
+    threads.mapping_sync "due" the next keyframe due finds it busy, the tracker waits for it there, makes that
     keyframe and tracks every frame. Without that wait the tracker drives on over a map
     that no longer grows, and the track is lost within the 50 frames."""
     system, ended = _mapping_stalled_until_released(kitti_sample, without_the_wait)

@@ -863,6 +863,7 @@ class System:
             "threads": {
                 "sequential": self.sequential,
                 "process_solver": self.configs.threads.process_solver,
+                "mapping_sync": self.configs.threads.mapping_sync,
                 "speed": 0.0 if self.sequential else self.configs.threads.speed,
                 "library_threads": self.library_threads,
             },
