@@ -501,9 +501,10 @@ def median_row(rows: list[dict[str, Any]], system: str) -> dict[str, Any] | None
     return med
 
 
-def ours_features(args: argparse.Namespace) -> int | None:
-    """ORB features per image that ``orbslam-hgcn run`` will use (its --config's orb section)."""
-    from orbslam_hgcn.config import resolve_config
+def ours_features(args: argparse.Namespace, camera: Any, kind: str) -> int | None:
+    """ORB features per image that ``orbslam-hgcn run`` will use: the orb section of the
+    stage settings it picks for the dataset's ``camera``, then of its --config."""
+    from orbslam_hgcn.config import dataset_settings, load_yaml, resolve_config
     from orbslam_hgcn.errors import OrbslamError
     from orbslam_hgcn.runtime.system import Configs
 
@@ -514,10 +515,13 @@ def ours_features(args: argparse.Namespace) -> int | None:
             config = extra[i + 1]
         elif tok.startswith("--config="):
             config = tok.split("=", 1)[1]
-    if config is not None:
-        config = resolve_config(config)  # a file, or a shipped camera name
     try:
-        return Configs.from_yaml(config).orb.n_features
+        settings_path, settings = dataset_settings(camera, kind)
+        layers = [(settings, settings_path or "")]
+        if config is not None:
+            config = resolve_config(config)  # a file, or a shipped camera name
+            layers.append((load_yaml(config), config))
+        return Configs.from_layers(layers).orb.n_features
     except OrbslamError:
         return None
 
@@ -595,7 +599,7 @@ def main() -> int:
     print(f"{sequence.name}: {n} of {len(sequence)} frames, {cam.width}x{cam.height}, {cam.fps:.1f} Hz, "
           f"ground truth: {'yes' if gt is not None else 'no'}")
     print(f"orbslam_hgcn at {repo_state()}: orbslam-hgcn run {args.ours_args or '(defaults)'}; "
-          f"{ours_features(args) or '?'} ORB features")
+          f"{ours_features(args, cam, kind) or '?'} ORB features")
     print(f"ORB-SLAM3 (pyorbslam3 {version}, monocular, viewer off): {peer_features} ORB features, "
           f"vocabulary {vocab}{f', BoW matching at tree level {args.peer_bow_level}' if args.peer_bow_level else ''}")
     pace = "as fast as they are processed" if args.speed == 0 else f"at {args.speed:g}x the camera's rate"
