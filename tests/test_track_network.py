@@ -131,3 +131,25 @@ def test_numpy_network_equals_the_torch_model():
     again = TrackNetwork.from_arrays(net.arrays())
     np.testing.assert_array_equal(again.embed(x, mates, mask, ham), got)
     assert POPCOUNT[255] == 8
+
+
+@pytest.mark.parametrize("name, arm, aggregation", [("hgcn_graph", "C-att", "attention"),
+                                                    ("hgcn_graph_mean", "C", "mean")])
+def test_shipped_track_network_files(name, arm, aggregation, tmp_path):
+    from orbslam_hgcn.vocabulary import load_vocabulary
+
+    vocab = load_vocabulary(name)
+    meta = vocab.metadata
+    assert meta.kind == "hgcn" and meta.params["arm"] == arm and meta.params["aggregation"] == aggregation
+    assert vocab.track_network.aggregation == aggregation
+    assert meta.stats["best_epoch"] >= 1
+    assert meta.stats["validation_accuracy"] > meta.stats["validation_accuracy_untrained"]
+    # Lone descriptors keep the k-means vocabulary's words.
+    kmeans = load_vocabulary("kmeans")
+    desc = np.random.default_rng(0).integers(0, 256, (500, 32), dtype=np.uint8)
+    assert np.array_equal(vocab.transform_words(desc), kmeans.transform_words(desc))
+    # The network survives a save and load.
+    again = load_vocabulary(vocab.save(tmp_path / "v.npz"))
+    assert again.track_network.arrays().keys() == vocab.track_network.arrays().keys()
+    for k, a in vocab.track_network.arrays().items():
+        np.testing.assert_array_equal(again.track_network.arrays()[k], a)
