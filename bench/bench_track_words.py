@@ -6,10 +6,10 @@ Arms (same sequences, keyframes, tracks and database protocol):
 * ``A1``  the shipped HGCN's words of lone descriptors (its network on one descriptor);
 * ``B0``  k-means word of each feature's causal track mean (no network);
 * ``B0h`` the shipped HGCN's word of the causal track mean (the network on the mean);
+* ``C``   the graph network over the causal track mates with mean aggregation (its
+  k-means words; ``--graph-mean``, the shipped ``hgcn_graph_mean``), ``C-att`` the same
+  with attention (``--graph``, the shipped ``hgcn_graph``): :mod:`orbslam_hgcn.vocabulary.track_network`;
 * ``orb`` the ORB tree of about the flat vocabularies' size (``orb10k``) on lone descriptors.
-
-A graph network over the track (arm C of the design) is not built: the shipped network
-is in effect the identity (best epoch 0), so it is measured as B0h.
 
 Sequences: the place-recognition offices of ``bench_place_recognition.py`` (two laps round
 a desk, one rendered sequence per scene seed, not training scenes), keyframes every
@@ -51,10 +51,12 @@ from orbslam_hgcn.features.orb import ORBExtractor  # noqa: E402
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence  # noqa: E402
 from orbslam_hgcn.map.database import KeyframeDatabase  # noqa: E402
 from orbslam_hgcn.vocabulary import load_vocabulary  # noqa: E402
+from orbslam_hgcn.vocabulary.track_network import window_words  # noqa: E402
 from orbslam_hgcn.vocabulary.training.tracks import build_tracks  # noqa: E402
 
-ARMS = ("A0", "A1", "B0", "B0h", "orb")
-CONTRASTS = (("B0", "A0"), ("B0h", "A1"), ("B0h", "B0"), ("A1", "A0"))
+ARMS = ("A0", "A1", "B0", "B0h", "C", "C-att", "orb")
+CONTRASTS = (("B0", "A0"), ("B0h", "A1"), ("B0h", "B0"), ("A1", "A0"), ("C-att", "A0"), ("C-att", "B0"),
+             ("C", "B0"))
 METRICS = ("AP", "recall@1")
 
 
@@ -132,10 +134,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dist", type=float, default=0.5)
     ap.add_argument("--angle", type=float, default=30.0)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--graph", default="hgcn_graph", help="arm C-att: vocabulary with the attention track network")
+    ap.add_argument("--graph-mean", default="hgcn_graph_mean",
+                    help="arm C: vocabulary with the mean-aggregation track network")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     gt_file = two_lap_trajectory(args.cache_dir / "two_lap_40s_wide.txt")
-    vocabs = {"kmeans": load_vocabulary("kmeans"), "hgcn": load_vocabulary("hgcn"), "orb": load_vocabulary("orb10k")}
+    vocabs = {"kmeans": load_vocabulary("kmeans"), "hgcn": load_vocabulary("hgcn"), "orb": load_vocabulary("orb10k"),
+              "graph": load_vocabulary(args.graph), "graph_mean": load_vocabulary(args.graph_mean)}
     extractor = ORBExtractor()
     window = max(1, args.min_gap // args.kf_every)  # keyframes less than min_gap frames older, and itself
     per_seq: dict[str, dict[str, dict]] = {}
@@ -172,6 +178,8 @@ def main(argv: list[str] | None = None) -> int:
                     w[rows] = v.words_of_points(m)
                 bows[arm_track].append(v.bow_from_words(w))
             tracked_share = [len(r) / max(len(xi), 1) for (r, _), xi in zip(means, x)]
+        for arm, graph in (("C", vocabs["graph_mean"]), ("C-att", vocabs["graph"])):
+            bows[arm] = [graph.bow_from_words(w) for w in window_words(graph, desc, tracks, window)]
         bows["orb"] = [vocabs["orb"].bow(d) for d in desc]
         name = f"office{seed}"
         per_seq[name] = {arm: scores(bows[arm], frames, gt, args.min_gap) for arm in ARMS}

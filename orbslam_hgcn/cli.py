@@ -401,7 +401,8 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--no-loop", action="store_true", help="run without loop closing")
     p.add_argument("--vocab", default=None, metavar="orb|hgcn|kmeans|orb10k|FILE|none",
-                   help="visual vocabulary: a shipped one (orb, hgcn, kmeans, orb10k), a vocabulary file, or none "
+                   help="visual vocabulary: a shipped one (orb, hgcn, kmeans, orb10k, hgcn_graph, hgcn_graph_mean), "
+                   "a vocabulary file, or none "
                    "(default hgcn; needed for loop closing and relocalisation)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
     p.add_argument("--on-bad-frame", choices=("skip", "stop"), default="skip",
@@ -479,7 +480,8 @@ def _add_vocab(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--address", default=None, help="extract the descriptors on the Ray cluster at this address")
     t.set_defaults(func=_run_vocab_train)
     i = vsub.add_parser("info", help="print a vocabulary's metadata")
-    i.add_argument("file", help="vocabulary file, or a shipped one: 'orb', 'hgcn', 'kmeans', 'orb10k'")
+    i.add_argument("file", help="vocabulary file, or a shipped one: 'orb', 'hgcn', 'kmeans', 'orb10k', "
+                   "'hgcn_graph', 'hgcn_graph_mean'")
     i.set_defaults(func=_run_vocab_info)
     e = vsub.add_parser("export", help="write an ORB-tree vocabulary as a DBoW2 text file (ORB-SLAM2/3's ORBvoc.txt)")
     e.add_argument("file", help="ORB-tree vocabulary file, or 'orb' for the shipped default")

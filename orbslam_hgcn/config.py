@@ -594,6 +594,15 @@ class LocalMappingConfig:
     # the track's reduced descriptors in keyframes up to this one
     # (orbslam_hgcn.vocabulary.track_words); FeatureVectors and frames keep lone words.
     track_words: bool = False
+    # How track words are made: "mean" (above) or "network": the graph network over the
+    # feature's most recent causal track mates (orbslam_hgcn.vocabulary.track_network),
+    # which needs a vocabulary holding one (--vocab hgcn_graph).
+    track_words_by: str = "mean"
+
+    def __post_init__(self) -> None:
+        if self.track_words_by not in ("mean", "network"):
+            raise ConfigError(
+                f"local_mapping.track_words_by: expected 'mean' or 'network', found {self.track_words_by!r}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,6 +1,7 @@
-"""Track words: a keyframe's BoW from the causal means of its features' tracks. The words
-are those of the directly computed means, later keyframes never change them, and a lone
-frame relocalises against a map whose keyframes carry track words (end to end)."""
+"""Track words: a keyframe's BoW from the causal means of its features' tracks, or from the
+graph network over each feature's causal track mates. The words are those of the directly
+computed means (network outputs), later keyframes never change them, and a lone frame
+relocalises against a map whose keyframes carry track words (end to end)."""
 
 import dataclasses
 
@@ -9,10 +10,13 @@ import pytest
 import vocab_fixtures as vf
 
 from orbslam_hgcn.config import LocalMappingConfig
+from orbslam_hgcn.errors import ConfigError
+from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.app.mapfile import install_map, load_map, save_system_map
 from orbslam_hgcn.runtime.system import Configs, System
 from orbslam_hgcn.vocabulary import load_vocabulary
+from orbslam_hgcn.vocabulary.track_network import TrackNetworkWords
 from orbslam_hgcn.vocabulary.track_words import TrackWords
 
 
@@ -106,3 +110,68 @@ def test_lone_frame_relocalises_against_track_words(track_mapped):
     j = ref.nearest(loc.timestamps[0], 1e-4)
     assert j is not None
     assert np.linalg.norm(loc.positions[0] - ref.positions[j]) < 0.01 * np.ptp(ref.positions, axis=0).max()
+
+
+# --- the graph network over causal track mates (local_mapping.track_words_by: network) ---
+
+
+def test_track_network_words_are_the_networks_words_of_causal_mates_and_never_change():
+    vocab = load_vocabulary("hgcn_graph")
+    net = vocab.track_network
+    n_kf = net.window + 4  # tracks longer than the window: the cache keeps only the recent mates
+    desc, obs = _tracks(np.random.default_rng(4), n_kf=n_kf)
+    tw = TrackNetworkWords(vocab)
+    got = {kf: tw.keyframe_bow(*_keyframe_args(desc, obs, kf, vocab))[1] for kf in range(n_kf)}
+    assert max(len(tw._obs[p]) for p in tw.points()) <= net.window + 1
+    n_changed = 0
+    for kf in range(n_kf):
+        # Direct computation: the network on the feature and its window most recent
+        # observations in earlier keyframes.
+        args = _keyframe_args(desc, obs, kf, vocab)
+        words = args[2].copy()
+        for i, o in zip(args[3], args[5]):
+            older = sorted((j for j in o if j < kf), reverse=True)[: net.window]
+            if not older:
+                continue
+            mates = np.zeros((1, net.window, vocab.pca.dim), np.float32)
+            mask = np.zeros((1, net.window), bool)
+            ham = np.zeros((1, net.window))
+            for r, j in enumerate(older):
+                mates[0, r] = vocab.project(desc[j][[o[j]]])[0]
+                mask[0, r] = True
+                ham[0, r] = np.unpackbits(desc[kf][i] ^ desc[j][o[j]]).sum()
+            y = net.embed(vocab.project(desc[kf][[i]]), mates, mask, ham)
+            words[i] = vocab.words_of_points(y)[0]
+        assert np.array_equal(got[kf], words), kf
+        n_changed += int(np.sum(words != args[2]))
+        # A fresh cache that sees the later keyframes' observations already linked gives
+        # the same words.
+        assert np.array_equal(TrackNetworkWords(vocab).keyframe_bow(*args)[1], got[kf])
+    assert n_changed > 20  # the network does change words (the test can tell)
+    assert np.array_equal(got[0], vocab.transform_words(desc[0]))
+
+
+def test_track_network_words_need_a_vocabulary_with_a_network():
+    with pytest.raises(ValueError, match="track network"):
+        TrackNetworkWords(load_vocabulary("kmeans"))
+    with pytest.raises(ConfigError, match="track_words_by"):
+        LocalMappingConfig(track_words_by="median")
+    configs = Configs(local_mapping=LocalMappingConfig(track_words=True, track_words_by="network"))
+    with pytest.raises(ConfigError, match="hgcn_graph"):
+        System(PinholeCamera(500, 500, 320, 240, 640, 480), configs, vocabulary=load_vocabulary("kmeans"))
+
+
+@pytest.fixture(scope="module")
+def network_mapped(synth_replay_100, tmp_path_factory):
+    seq = open_sequence("tum", synth_replay_100)
+    vocab = load_vocabulary("hgcn_graph")
+    configs = Configs(local_mapping=dataclasses.replace(LocalMappingConfig(), track_words=True,
+                                                        track_words_by="network"))
+    system = System(seq.camera, configs, vocabulary=vocab)
+    system.run(seq, 60, progress=False)
+    path = save_system_map(tmp_path_factory.mktemp("map") / "map.npz", system, "hgcn")
+    return seq, vocab, system, path
+
+
+def test_lone_frame_relocalises_against_track_network_words(network_mapped):
+    test_lone_frame_relocalises_against_track_words(network_mapped)

@@ -12,7 +12,9 @@ Sec. VI; LocalMapping::Run of ORB-SLAM2), in its order:
 4. duplicate fusion with the neighbourhood (:mod:`orbslam_hgcn.mapping.fuse`); then, with
    ``track_words`` and a flat vocabulary, the keyframe's BoW vector is remade from its
    features' causal tracks (:mod:`orbslam_hgcn.vocabulary.track_words`; timed as
-   ``track_words``) before the loop closer adds it to the keyframe database;
+   ``track_words``; with ``track_words_by: network`` from the graph network over each
+   feature's causal track mates, :mod:`orbslam_hgcn.vocabulary.track_network`) before the
+   loop closer adds it to the keyframe database;
 5. local bundle adjustment (gtsam, via :mod:`orbslam_hgcn.backend`): the keyframe and its
    covisible keyframes free, every other keyframe seeing their points fixed, Huber
    kernel, 5 iterations, outliers out, 10 more, CPU time bounded, and stopped early when
@@ -45,11 +47,13 @@ import numpy as np
 from orbslam_hgcn.backend.problem import as_problem
 from orbslam_hgcn.backend.solver import InProcessSolver, SolverError
 from orbslam_hgcn.config import BackendConfig, LocalMappingConfig
+from orbslam_hgcn.errors import ConfigError
 from orbslam_hgcn.map import KeyFrame, Map
 from orbslam_hgcn.map.window import apply_window, local_window
 from orbslam_hgcn.mapping.culling import cull_recent_points, redundant_keyframes
 from orbslam_hgcn.mapping.fuse import search_in_neighbors
 from orbslam_hgcn.mapping.triangulate import create_new_points
+from orbslam_hgcn.vocabulary.track_network import TrackNetworkWords
 from orbslam_hgcn.vocabulary.track_words import TrackWords
 
 log = logging.getLogger(__name__)
@@ -93,7 +97,12 @@ class LocalMapper:
         self.recent = np.zeros(0, dtype=np.int64)
         self.track_words = None
         if self.config.track_words and self.vocabulary is not None:
-            if hasattr(self.vocabulary, "words_of_points"):
+            if self.config.track_words_by == "network":
+                if getattr(self.vocabulary, "track_network", None) is None:
+                    raise ConfigError("local_mapping.track_words_by: network needs a vocabulary holding a track "
+                                      "network (--vocab hgcn_graph)")
+                self.track_words = TrackNetworkWords(self.vocabulary)
+            elif hasattr(self.vocabulary, "words_of_points"):
                 self.track_words = TrackWords(self.vocabulary)
             else:
                 log.warning("local_mapping.track_words needs a flat vocabulary (kmeans, hgcn): lone words")

@@ -53,6 +53,7 @@ from orbslam_hgcn.vocabulary.flat import (
     nearest,
 )
 from orbslam_hgcn.vocabulary.graph import PCA, build_graph, fit_pca
+from orbslam_hgcn.vocabulary.track_network import TrackNetwork
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +74,9 @@ class HGCNVocabulary(KMeansVocabulary):
     """
 
     kind = "hgcn"
+    # The graph network over causal feature tracks (:mod:`.track_network`), when the file
+    # holds one: the keyframe words of ``local_mapping.track_words_by: network``.
+    track_network: TrackNetwork | None = None
 
     def __init__(self, pca: PCA, centroids: np.ndarray, coarse_centroids: np.ndarray, word_coarse: np.ndarray,
                  ivf_centroids: np.ndarray, nprobe: int, idf: np.ndarray, metadata: VocabularyMetadata, *,
@@ -122,6 +126,8 @@ class HGCNVocabulary(KMeansVocabulary):
         if self.network is not None:
             out.update(self.network.arrays())
             out.update({"prototypes": self.prototypes, "assignment": np.array(self._assignment)})
+        if self.track_network is not None:
+            out.update(self.track_network.arrays())
         return out
 
     @classmethod
@@ -144,7 +150,14 @@ class HGCNVocabulary(KMeansVocabulary):
             kw = {"network": net, "prototypes": protos, "assignment": assignment}
         else:
             log.info("%s: a vocabulary without the network: words by nearest centroid", path)
-        return cls(*args, **kw)
+        vocab = cls(*args, **kw)
+        if "tracknet_weight" in arrays:
+            try:
+                vocab.track_network = TrackNetwork.from_arrays(arrays)
+            except (KeyError, ValueError) as exc:
+                require(False, path, f"bad track network arrays ({exc})")
+            require(vocab.track_network.dim == pca.dim, path, "track network size differs from the PCA size")
+        return vocab
 
 
 def seed_labels(x: np.ndarray, cfg: HgcnTrainConfig, track_ids: np.ndarray | None, rng: np.random.Generator):

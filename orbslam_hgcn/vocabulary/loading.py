@@ -30,9 +30,12 @@ KIND_MODULES = {
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 DEFAULT_FILES = {"orb": DATA_DIR / "vocab_orb_default.npz", "hgcn": DATA_DIR / "vocab_hgcn_default.npz",
                  "kmeans": DATA_DIR / "vocab_kmeans_default.npz"}
-# Names load_vocabulary takes besides files: the default of each kind, and the ORB tree of
-# the flat vocabularies' size (k = 10, L = 4) for comparisons at equal size.
-SHIPPED = {**DEFAULT_FILES, "orb10k": DATA_DIR / "vocab_orb10k.npz"}
+# Names load_vocabulary takes besides files: the default of each kind, the ORB tree of
+# the flat vocabularies' size (k = 10, L = 4) for comparisons at equal size, and the
+# k-means words with the graph network over feature tracks, with attention and with mean
+# aggregation (tools/train_graph_vocab.py).
+SHIPPED = {**DEFAULT_FILES, "orb10k": DATA_DIR / "vocab_orb10k.npz", "hgcn_graph": DATA_DIR / "vocab_hgcn_graph.npz",
+           "hgcn_graph_mean": DATA_DIR / "vocab_hgcn_graph_mean.npz"}
 
 
 def load_vocabulary(path: str | Path, expected_kind: str | None = None) -> Vocabulary:
