@@ -40,10 +40,10 @@ from orbslam_hgcn.vocabulary.probe import ProbedSearch
 log = logging.getLogger(__name__)
 
 # The coarse-to-fine search (:mod:`.probe`) up to this many words, faiss's inverted file
-# above. For a 2000-feature KITTI keyframe against the shipped 8000 words (20-D), one
-# thread: faiss's exhaustive flat search took 18-19 ms CPU (not the 2 ms per 1000
-# descriptors once noted here: that was a lighter frame set), the probed search about
-# 7 ms, with the exact word for 99.2% of the descriptors (bench/bench_vocab_quantise.py).
+# above. For 2000-feature KITTI keyframes against the shipped 8000 words (20-D), one thread,
+# same process, machine load 8-11: faiss's exhaustive flat search took 18-19 ms CPU per
+# keyframe (the 2 ms per 1000 descriptors noted here before was not reproduced), the probed
+# search 7-9 ms, with the exact word for 99.1% of the descriptors.
 FLAT_MAX_WORDS = 16384
 
 

@@ -9,8 +9,8 @@ search.
 
 Why not one exhaustive faiss search: for a 2000-feature KITTI keyframe against 8000 words
 in 20-D, faiss's flat search (BLAS products, then the minimum over the 2000 x 8000
-distance table) took 18-19 ms CPU on one thread; this search, 16 of 89 lists probed, about
-7 ms. It finds the exact nearest word for 99.1% of the descriptors of 2000-feature KITTI
+distance table) took 18-19 ms CPU on one thread; this search, 16 of 89 lists probed, 7-9
+ms (same process, machine load 8-11). It finds the exact nearest word for 99.1% of the descriptors of 2000-feature KITTI
 frames and 99.5% of TUM and EuRoC ones (asserted >= 99% by
 ``tests/test_vocabulary_probe.py``); where it misses, its word's squared distance is a
 median 1.1-1.2 times the nearest one's.
