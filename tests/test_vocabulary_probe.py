@@ -21,7 +21,7 @@ def test_probing_every_list_is_the_exact_search():
     points = rng.standard_normal((500, 7)).astype(np.float32)
     x = rng.standard_normal((300, 7)).astype(np.float32)
     s = ProbedSearch(points, probe=10_000)
-    assert s.n_lists == 22 and s.probe == 22
+    assert s.n_lists == 45 and s.probe == 45
     np.testing.assert_array_equal(s.search(x), brute(x, points))
     s.probe = 1  # the nearest list only: often, not always, the nearest point
     one = s.search(x)
@@ -45,8 +45,8 @@ def frames_descriptors() -> np.ndarray:
 @pytest.mark.parametrize("kind", ["kmeans", "hgcn"])
 def test_shipped_vocabularies_find_the_exact_word_for_99_percent(kind):
     """The run-time search of the shipped 8000-word vocabularies against faiss's exhaustive
-    search on real frames (TUM, EuRoC): at least 99% the same word (99.5% and 99.6% when
-    written; 99.1% on 2000-feature KITTI frames), never a nearer one. Probing one list instead falls far below."""
+    search on real frames (TUM, EuRoC): at least 99% the same word (99.6% and 99.7% when
+    written; 99.2% on 2000-feature KITTI frames), never a nearer one. Probing one list instead falls far below."""
     v = load_vocabulary(DEFAULT_FILES[kind])
     x = v.project(frames_descriptors())
     fast, exact = v.words_of_points(x), v.words_of_points(x, exact=True)
@@ -64,4 +64,4 @@ def test_shipped_vocabularies_find_the_exact_word_for_99_percent(kind):
     try:
         assert np.mean(v.words_of_points(x) == exact) < 0.7
     finally:
-        search.probe = 16
+        search.probe = 24

@@ -2,18 +2,18 @@
 
 The flat vocabularies' words are found by this search at run time (the k-means
 vocabulary's centroids, the HGCN vocabulary's lifted prototypes): the W points are grouped
-into ``lists`` = round(sqrt(W)) lists by a seeded k-means done when the vocabulary loads
+into round(2 sqrt(W)) lists by a seeded k-means done when the vocabulary loads
 (nothing is added to the file); a query's ``probe`` nearest list centres are chosen, and the
 nearest point among those lists' points is its word. Probing every list is the exact
 search.
 
 Why not one exhaustive faiss search: for a 2000-feature KITTI keyframe against 8000 words
 in 20-D, faiss's flat search (BLAS products, then the minimum over the 2000 x 8000
-distance table) took 18-19 ms CPU on one thread; this search, 16 of 89 lists probed, 7-9
-ms (same process, machine load 8-11). It finds the exact nearest word for 99.1% of the descriptors of 2000-feature KITTI
-frames and 99.5% of TUM and EuRoC ones (asserted >= 99% by
-``tests/test_vocabulary_probe.py``); where it misses, its word's squared distance is a
-median 1.1-1.2 times the nearest one's.
+distance table) took 18-19 ms CPU on one thread; this search, 24 of 179 lists probed, 7-8
+ms (same process, machine load 8-11; 16 of 89 lists: 8 ms and fewer exact words). It
+finds the exact nearest word for 99.2% of the descriptors of 2000-feature KITTI frames and
+99.6-99.7% of TUM and EuRoC ones (asserted >= 99% by ``tests/test_vocabulary_probe.py``);
+where it misses, its word's squared distance is a median 1.1-1.2 times the nearest one's.
 
 How: every query picks its lists (squared distances to the list centres, then the
 ``probe``-th smallest by bisection on the value); the (query, list) pairs are grouped by
@@ -33,17 +33,17 @@ from orbslam_hgcn.compiled import jit
 # The distance kernel may fuse its products and sums into FMA instructions (and only that).
 _jit_fma = numba.njit(cache=True, nogil=True, fastmath={"contract"})
 
-PROBE = 16  # lists probed per query
+PROBE = 24  # lists probed per query
 KMEANS_ITERS = 10  # Lloyd iterations of the list centres (at load time)
 
 
 def n_lists(n_points: int) -> int:
-    """Lists of a search over ``n_points`` points: round(sqrt(W)), at least 1."""
-    return max(1, int(round(np.sqrt(n_points))))
+    """Lists of a search over ``n_points`` points: round(2 sqrt(W)), at most W."""
+    return max(1, min(n_points, int(round(2 * np.sqrt(n_points)))))
 
 
 class ProbedSearch:
-    """Nearest of W points (W, d) by probing the ``probe`` nearest of round(sqrt(W)) lists.
+    """Nearest of W points (W, d) by probing the ``probe`` nearest of round(2 sqrt(W)) lists.
 
     points: (W, d) float. probe: lists probed per query (None: :data:`PROBE`; at least the
     number of lists: exact). seed: of the lists' k-means (fixed: the same words every run).
