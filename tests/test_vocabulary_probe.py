@@ -45,8 +45,8 @@ def frames_descriptors() -> np.ndarray:
 @pytest.mark.parametrize("kind", ["kmeans", "hgcn"])
 def test_shipped_vocabularies_find_the_exact_word_for_99_percent(kind):
     """The run-time search of the shipped 8000-word vocabularies against faiss's exhaustive
-    search on real frames (TUM, EuRoC): at least 99% the same word (99.6% and 99.7% when
-    written; 99.2% on 2000-feature KITTI frames), never a nearer one. Probing one list instead falls far below."""
+    search on real frames (TUM, EuRoC): at least 99% the same word (99.7% and 99.8% when
+    written; 99.5% on 2000-feature KITTI frames), never a nearer one. Probing one list instead falls far below."""
     v = load_vocabulary(DEFAULT_FILES[kind])
     x = v.project(frames_descriptors())
     fast, exact = v.words_of_points(x), v.words_of_points(x, exact=True)
@@ -64,4 +64,4 @@ def test_shipped_vocabularies_find_the_exact_word_for_99_percent(kind):
     try:
         assert np.mean(v.words_of_points(x) == exact) < 0.7
     finally:
-        search.probe = 24
+        search.probe = 28

@@ -3,7 +3,7 @@
 What the HGCN vocabulary and its ablation share: descriptors are projected to ``d``
 dimensions by PCA (ORB: the 256 bits unpacked, through a byte lookup table), words are
 points found, up to :data:`FLAT_MAX_WORDS` words, by the coarse-to-fine search of
-:mod:`.probe` (the 24 nearest of round(2 sqrt(W)) lists probed; lists built at load time)
+:mod:`.probe` (the 28 nearest of round(2 sqrt(W)) lists probed; lists built at load time)
 and, above, through faiss's inverted file over the words (IndexIVFFlat with ``4 sqrt(W)``
 lists saved in the file and ``nprobe`` probed). The FeatureVector uses coarse nodes: the
 words' centres clustered by k-means into ``n_coarse`` nodes (``levels_up >= 1``;
@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 # above. For 2000-feature KITTI keyframes against the shipped 8000 words (20-D), one thread,
 # same process, machine load 8-11: faiss's exhaustive flat search took 18-19 ms CPU per
 # keyframe (the 2 ms per 1000 descriptors noted here before was not reproduced), the probed
-# search 7-8 ms, with the exact word for 99.2% of the descriptors.
+# search about 8 ms, with the exact word for 99.5% of the descriptors.
 FLAT_MAX_WORDS = 16384
 
 
