@@ -182,9 +182,10 @@ def test_compiled_lone_node_layers_equal_the_numpy_graph_form(activation, residu
 
 
 def test_prototype_search_is_the_exact_hyperbolic_nearest():
-    """One L2 search over the lifted prototypes finds the prototype nearest in the ball's
-    distance, with prototypes from the centre to near the boundary (where the Euclidean
-    nearest is often not the hyperbolic one)."""
+    """The exhaustive L2 search over the lifted prototypes finds the prototype nearest in
+    the ball's distance, with prototypes from the centre to near the boundary (where the
+    Euclidean nearest is often not the hyperbolic one). (The run-time search over the same
+    lifted points is compared with this one in test_vocabulary_probe.py.)"""
     from orbslam_hgcn.vocabulary.ball import PrototypeSearch
 
     rng = np.random.default_rng(4)
@@ -198,7 +199,7 @@ def test_prototype_search_is_the_exact_hyperbolic_nearest():
     d = np.arccosh(1 + 2 * c * ((h[:, None] - protos[None]) ** 2).sum(-1)
                    / ((1 - c * (h ** 2).sum(1))[:, None] * (1 - c * p2)[None]))
     truth = d.argmin(1)
-    got = PrototypeSearch(protos.astype(np.float32), c).search(h.astype(np.float32))
+    got = PrototypeSearch(protos.astype(np.float32), c).search(h.astype(np.float32), exact=True)
     euclid = ((h[:, None] - protos[None]) ** 2).sum(-1).argmin(1)
     assert np.mean(euclid != truth) > 0.05  # the metric matters here
     wrong = got != truth

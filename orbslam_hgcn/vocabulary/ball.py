@@ -8,8 +8,8 @@ linear map, the exponential and logarithmic maps at the origin, Mobius addition 
 projections. Run time embeds descriptors as graphs of their own through one compiled
 kernel per layer (:func:`_layer_rows`: the same operations row by row, after BLAS has done
 the matrix products); numpy keeps the graph form (:meth:`BallNetwork.embed_graph`), which
-training's checks use. The nearest prototype is found exactly, by one faiss search over
-lifted prototypes (:class:`PrototypeSearch`).
+training's checks use. The nearest prototype is found in a space where it is the nearest
+point in L2 (:class:`PrototypeSearch`), by the coarse-to-fine search of :mod:`.probe`.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import numpy as np
 
 from orbslam_hgcn.compiled import jit
 from orbslam_hgcn.vocabulary.graph import configure_faiss, faiss_threads
+from orbslam_hgcn.vocabulary.probe import ProbedSearch
 
 log = logging.getLogger(__name__)
 
@@ -214,42 +215,49 @@ def ball_weights(p: np.ndarray, c: float) -> np.ndarray:
 
 
 class PrototypeSearch:
-    """Exact hyperbolic nearest prototype by one faiss flat L2 search.
+    """Hyperbolic nearest prototype as a nearest point in L2.
 
     For a query h, the nearest of the ball points p (curvature c) minimises
     ``w_p |h - p|^2`` with ``w_p = 1 / (1 - c |p|^2)`` (:func:`ball_weights`): it has the
     largest inner product of ``q = [h, |h|^2, 1]`` with ``u_p = [2 w_p p, -w_p,
     -w_p |p|^2]``. Scaled to unit length, ``u_p / M`` completed by ``sqrt(1 - |u_p / M|^2)``
     (M the largest ``|u_p|``) and ``q / |q|`` completed by 0, the largest inner product is
-    the nearest point in L2, which faiss finds in one fused pass for up to 32 dimensions
-    (hidden width + 3, padded with zeros to a multiple of 8). On a frame of descriptors this
-    exhaustive search through BLAS costs less than an inverted file that finds the nearest
-    prototype as often.
+    the nearest point in L2 (hidden width + 3 dimensions). Run time searches those lifted
+    points with :class:`~.probe.ProbedSearch`; ``exact`` uses faiss's exhaustive search.
     """
 
     def __init__(self, prototypes: np.ndarray, c: float) -> None:
-        configure_faiss()
         p = np.asarray(prototypes, np.float64)
         w = ball_weights(p, c)[:, None]
         u = np.hstack([2 * w * p, -w, -w * np.einsum("kd,kd->k", p, p)[:, None]])
         u /= np.sqrt(np.einsum("kd,kd->k", u, u).max())
-        self.dim = -(-(u.shape[1] + 1) // 8) * 8
-        db = np.zeros((len(u), self.dim), np.float32)
-        db[:, : u.shape[1]] = u
-        db[:, u.shape[1]] = np.sqrt(np.maximum(1.0 - np.einsum("kd,kd->k", u, u), 0.0))
-        self.index = faiss.IndexFlatL2(self.dim)
-        self.index.add(db)
+        self.dim = u.shape[1] + 1
+        self.points = np.zeros((len(u), self.dim), np.float32)
+        self.points[:, : u.shape[1]] = u
+        self.points[:, u.shape[1]] = np.sqrt(np.maximum(1.0 - np.einsum("kd,kd->k", u, u), 0.0))
+        self.probed = ProbedSearch(self.points)
 
-    def search(self, h: np.ndarray) -> np.ndarray:
-        """(N,) int32 nearest prototype of ball points h (N, hidden)."""
+    def lift(self, h: np.ndarray) -> np.ndarray:
+        """(N, hidden + 3) float32 unit queries ``[h, |h|^2, 1, 0] / |.|`` of ball points h."""
         h = np.asarray(h, np.float32)
         q = np.zeros((len(h), self.dim), np.float32)
         q[:, : h.shape[1]] = h
         q[:, h.shape[1]] = np.einsum("nd,nd->n", h, h)
         q[:, h.shape[1] + 1] = 1.0
         q /= np.sqrt(np.einsum("nd,nd->n", q, q))[:, None]
-        with faiss_threads(len(q)):
-            return self.index.search(q, 1)[1][:, 0].astype(np.int32)
+        return q
+
+    def search(self, h: np.ndarray, exact: bool = False) -> np.ndarray:
+        """(N,) int32 nearest prototype of ball points h (N, hidden) (``exact``: faiss's
+        exhaustive search, for comparisons)."""
+        q = self.lift(h)
+        if exact:
+            configure_faiss()
+            index = faiss.IndexFlatL2(self.dim)
+            index.add(self.points)
+            with faiss_threads(len(q)):
+                return index.search(q, 1)[1][:, 0].astype(np.int32)
+        return self.probed.search(q)
 
 
 @jit

@@ -2,10 +2,12 @@
 
 What the HGCN vocabulary and its ablation share: descriptors are projected to ``d``
 dimensions by PCA (ORB: the 256 bits unpacked, through a byte lookup table), words are
-points found by faiss (exactly, IndexFlatL2, up to :data:`FLAT_MAX_WORDS` words; through an
-inverted file over the words, IndexIVFFlat with ``4 sqrt(W)`` lists and ``nprobe`` probed,
-above), and the FeatureVector uses coarse nodes: the words' centres clustered by k-means
-into ``n_coarse`` nodes (``levels_up >= 1``; ``levels_up = 0`` indexes the words).
+points found, up to :data:`FLAT_MAX_WORDS` words, by the coarse-to-fine search of
+:mod:`.probe` (the 28 nearest of round(2 sqrt(W)) lists probed; lists built at load time)
+and, above, through faiss's inverted file over the words (IndexIVFFlat with ``4 sqrt(W)``
+lists saved in the file and ``nprobe`` probed). The FeatureVector uses coarse nodes: the
+words' centres clustered by k-means into ``n_coarse`` nodes (``levels_up >= 1``;
+``levels_up = 0`` indexes the words).
 
 The k-means vocabulary (kind ``kmeans``) is the HGCN vocabulary without the graph and the
 network: its words are the seed k-means centres the HGCN is trained from (same PCA, same
@@ -14,7 +16,8 @@ network adds.
 
 Saved arrays (kind ``kmeans``): ``pca_mean`` (F,), ``pca_components`` (F, d),
 ``centroids`` (W, d), ``coarse_centroids`` (C, d), ``word_coarse`` (W,) int32,
-``ivf_centroids`` (L, d) (L = 0: exact search) and ``nprobe`` (scalar).
+``ivf_centroids`` (L, d) (L = 0: the coarse-to-fine search of :mod:`.probe`, whose lists are
+built at load time) and ``nprobe`` (scalar).
 """
 
 from __future__ import annotations
@@ -32,13 +35,15 @@ from orbslam_hgcn.vocabulary.base import Vocabulary, VocabularyMetadata, now_iso
 from orbslam_hgcn.vocabulary.bow import idf_from_documents
 from orbslam_hgcn.vocabulary.descriptors import BINARY, FLOAT, descriptor_kind
 from orbslam_hgcn.vocabulary.graph import PCA, configure_faiss, faiss_threads, fit_pca
+from orbslam_hgcn.vocabulary.probe import ProbedSearch
 
 log = logging.getLogger(__name__)
 
-# Exact nearest-word search up to this many words, IVF above. A frame's descriptors go to
-# faiss in one batch, which its exhaustive search handles through BLAS: 8000 words in 20-D,
-# 1000 KITTI descriptors, one thread, took 2.0 ms exactly against 1.5 ms with 4 of 357
-# lists probed (73% nearest) and 5.0 ms with 16 (95.5%) (faiss 1.15).
+# The coarse-to-fine search (:mod:`.probe`) up to this many words, faiss's inverted file
+# above. For 2000-feature KITTI keyframes against the shipped 8000 words (20-D), one thread,
+# same process, machine load 8-11: faiss's exhaustive flat search took 18-19 ms CPU per
+# keyframe (the 2 ms per 1000 descriptors noted here before was not reproduced), the probed
+# search about 8 ms, with the exact word for 99.5% of the descriptors.
 FLAT_MAX_WORDS = 16384
 
 
@@ -62,22 +67,24 @@ def nearest(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
 
 
 class PointIndex:
-    """Nearest-point search over W points (W, d): exact (no lists) or an inverted file
-    over ``lists`` (L, d) list centres with ``nprobe`` lists probed."""
+    """Nearest-point search over W points (W, d): the coarse-to-fine search of
+    :class:`~.probe.ProbedSearch` (no lists given), or faiss's inverted file over
+    ``lists`` (L, d) list centres with ``nprobe`` lists probed."""
 
     def __init__(self, points: np.ndarray, lists: np.ndarray, nprobe: int) -> None:
         configure_faiss()
-        points = np.ascontiguousarray(points, dtype=np.float32)
-        d = points.shape[1]
+        self.points = np.ascontiguousarray(points, dtype=np.float32)
+        d = self.points.shape[1]
         self.lists = np.ascontiguousarray(lists, dtype=np.float32).reshape(-1, d)
         if len(self.lists) == 0:
-            self.index = faiss.IndexFlatL2(d)
+            self.index = None
+            self.probed = ProbedSearch(self.points)
         else:
             self._quantizer = faiss.IndexFlatL2(d)  # kept alive: the IVF index does not own it
             self._quantizer.add(self.lists)
             self.index = faiss.IndexIVFFlat(self._quantizer, d, len(self.lists))
             self.index.is_trained = True
-        self.index.add(points)
+            self.index.add(self.points)
         self.nprobe = nprobe
 
     @property
@@ -87,17 +94,23 @@ class PointIndex:
     @nprobe.setter
     def nprobe(self, value: int) -> None:
         self._nprobe = int(value)
-        if isinstance(self.index, faiss.IndexIVF):
+        if self.index is not None:
             self.index.nprobe = max(1, min(self._nprobe, self.index.nlist))
 
-    def search(self, x: np.ndarray, k: int = 1) -> np.ndarray:
-        """(N, k) int64 nearest points of x (N, d), nearest first (-1 where fewer are found)."""
+    def search(self, x: np.ndarray, exact: bool = False) -> np.ndarray:
+        """(N,) int32 nearest point of every row of x (N, d) (exact: faiss's exhaustive
+        search, for comparisons)."""
+        x = np.ascontiguousarray(x, dtype=np.float32)
+        if exact:
+            return nearest(x, self.points).astype(np.int32)
+        if self.index is None:
+            return self.probed.search(x)
         with faiss_threads(len(x)):
-            return self.index.search(np.ascontiguousarray(x, dtype=np.float32), k)[1]
+            return self.index.search(x, 1)[1][:, 0].astype(np.int32)
 
 
 def ivf_lists(points: np.ndarray, seed: int) -> np.ndarray:
-    """List centres of the inverted file over W points: none (exact) up to
+    """List centres of the inverted file over W points: none (the search of :mod:`.probe`) up to
     :data:`FLAT_MAX_WORDS` points, else ``4 sqrt(W)`` k-means centres."""
     if len(points) <= FLAT_MAX_WORDS:
         return np.zeros((0, points.shape[1]), np.float32)
@@ -131,8 +144,9 @@ class PCAVocabulary(Vocabulary):
     def _words(self, desc: np.ndarray) -> np.ndarray:
         return self.words_of_points(self.pca.transform(desc))
 
-    def words_of_points(self, x: np.ndarray) -> np.ndarray:
-        """(N,) int32 word of points x (N, d) in PCA space (the run-time search)."""
+    def words_of_points(self, x: np.ndarray, exact: bool = False) -> np.ndarray:
+        """(N,) int32 word of points x (N, d) in PCA space: the run-time search, or the
+        exhaustive one (``exact``, for comparisons)."""
         raise NotImplementedError
 
     def word_nodes(self, words: np.ndarray, levels_up: int) -> np.ndarray:
@@ -183,7 +197,7 @@ class KMeansVocabulary(PCAVocabulary):
     word is its nearest centre.
 
     centroids: (W, d). ivf_centroids: (L, d) inverted-list centres of the search (L = 0:
-    exact). nprobe: lists probed per query.
+    :class:`~.probe.ProbedSearch`). nprobe: inverted lists probed per query.
     """
 
     kind = "kmeans"
@@ -206,8 +220,8 @@ class KMeansVocabulary(PCAVocabulary):
     def nprobe(self, value: int) -> None:
         self._search.nprobe = value
 
-    def words_of_points(self, x: np.ndarray) -> np.ndarray:
-        return self._search.search(x, 1)[:, 0].astype(np.int32)
+    def words_of_points(self, x: np.ndarray, exact: bool = False) -> np.ndarray:
+        return self._search.search(x, exact)
 
     def _state(self) -> dict[str, np.ndarray]:
         return {**self._pca_state(), "centroids": self.centroids, "ivf_centroids": self.ivf_centroids,

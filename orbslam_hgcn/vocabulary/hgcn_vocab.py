@@ -14,8 +14,9 @@ Training (after "Semi-supervised Vector-Quantization in Visual SLAM using HGCN")
 
 Run time (``assignment = "network"``): a descriptor is PCA-projected (a byte lookup table),
 passed through the trained layers as a graph of its own (:class:`~.ball.BallNetwork`,
-compiled), and its word is the nearest prototype in the hyperbolic distance, found exactly
-among all prototypes (:class:`~.ball.PrototypeSearch`). Training measures how often this
+compiled), and its word is the nearest prototype in the hyperbolic distance, found by the
+coarse-to-fine search of :mod:`.probe` over lifted prototypes (:class:`~.ball.PrototypeSearch`;
+the exact nearest for about 99% of real descriptors). Training measures how often this
 gives the word the network gave the training descriptor inside its graph
 (``runtime_word_agreement``). ``assignment = "centroid"`` instead takes the nearest
 class-mean centroid (in PCA space) of the network's labels: the decoder of version-1 files,
@@ -106,14 +107,15 @@ class HGCNVocabulary(KMeansVocabulary):
         """(N, h) output-ball points of PCA coordinates x (N, d), each a graph of its own."""
         return self.network.embed_isolated(x)
 
-    def nearest_prototype(self, h: np.ndarray) -> np.ndarray:
-        """(N,) int32 hyperbolically nearest prototype of ball points h (N, h)."""
-        return self._proto_search.search(h)
+    def nearest_prototype(self, h: np.ndarray, exact: bool = False) -> np.ndarray:
+        """(N,) int32 hyperbolically nearest prototype of ball points h (N, h): the run-time
+        search, or the exhaustive one (``exact``)."""
+        return self._proto_search.search(h, exact)
 
-    def words_of_points(self, x: np.ndarray) -> np.ndarray:
+    def words_of_points(self, x: np.ndarray, exact: bool = False) -> np.ndarray:
         if self._assignment == "centroid":
-            return super().words_of_points(x)
-        return self.nearest_prototype(self.embed(x))
+            return super().words_of_points(x, exact)
+        return self.nearest_prototype(self.embed(x), exact)
 
     def graph_words(self, x: np.ndarray, adj) -> np.ndarray:
         """(N,) int32 the network's words of nodes x (N, d) inside the graph with normalised
