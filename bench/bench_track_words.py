@@ -1,84 +1,224 @@
-"""Track words against lone words in place recognition: the ablation of the keyframe BoW.
+"""Track words against lone words in place recognition: the ablation that picks the keyframe BoW.
 
-Arms (same sequences, keyframes, tracks and database protocol):
+Arms (same sequences, keyframes, tracks and database protocol; :data:`ARMS`):
 
-* ``A0``  k-means words of lone descriptors (the shipped k-means vocabulary);
-* ``A1``  the shipped HGCN's words of lone descriptors (its network on one descriptor);
+* ``A0``  k-means words of lone descriptors;
+* ``A1``  the HGCN's words of lone descriptors (its network on one descriptor);
 * ``B0``  k-means word of each feature's causal track mean (no network);
-* ``B0h`` the shipped HGCN's word of the causal track mean (the network on the mean);
-* ``orb`` the ORB tree of about the flat vocabularies' size (``orb10k``) on lone descriptors.
+* ``B1``  k-means word of the track's distinctive descriptor (ORB-SLAM's rule: the causal
+  member whose median Hamming distance to the members, itself included, is least; ties to
+  the oldest);
+* ``orb`` the ORB tree on lone descriptors.
 
-A graph network over the track (arm C of the design) is not built: the shipped network
-is in effect the identity (best epoch 0), so it is measured as B0h.
+Each arm runs at two word counts (``--sizes``): the shipped vocabularies (k-means and HGCN
+8000 words, the ORB tree ``orb10k`` with 10 000) and 1000 words (k-means and HGCN with 1000
+words, the ORB tree with k = 10, L = 3), trained on the shipped vocabularies' imagery by
+``tools/train_default_vocabs.py --kinds kmeans orb hgcn --hgcn-words 1000 --orb-levels 3
+--out-dir DIR`` (``--vocab-1000 DIR``, default ``CACHE/vocab1000``).
 
-Sequences: the place-recognition offices of ``bench_place_recognition.py`` (two laps round
-a desk, one rendered sequence per scene seed, not training scenes), keyframes every
-``--kf-every`` frames. Tracks: features matched between consecutive keyframes
-(:func:`orbslam_hgcn.vocabulary.training.tracks.build_tracks`: mutual nearest neighbours, ratio
-test, RANSAC fundamental matrix), standing in for the map's point observations. A
-keyframe's track mean uses the members in itself and the keyframes before it that are
-less than ``--min-gap`` frames older (causal, and never reaching the keyframes a query is
+An arm is a vocabulary kind and a function ``(vocabulary, Keyframes) -> per keyframe (N,)
+words``; another arm is one more entry in :data:`ARMS` (and its contrasts in
+:data:`CONTRASTS`, which are left out while an arm is missing).
+
+Sequences: place-recognition offices (two laps round a desk, the second 0.3 m further out
+and 0.15 m lower; scene seeds outside the vocabularies' training seeds 1001..), rendered
+with depth at the keyframe rate (``--fps`` / ``--kf-every``; only the keyframes are
+rendered). Tracks: features matched between consecutive keyframes
+(:func:`orbslam_hgcn.vocabulary.training.tracks.build_tracks`: mutual nearest neighbours,
+ratio test, RANSAC fundamental matrix), standing in for the map's point observations. A
+keyframe's track uses the members in itself and the keyframes before it that are less
+than ``--min-gap`` frames older (causal, and never reaching the keyframes a query is
 allowed to match, so a query and its true match never share a track member); a feature
 whose track has no such earlier member keeps its lone word. Each keyframe queries a
 database of the keyframes at least ``--min-gap`` frames older; its best match is a
 detection, true when the two cameras are within ``--dist`` m and ``--angle`` degrees.
 
 Per sequence and arm: average precision (PR curve over the detections' scores), recall@1
-(true top-1 detections / queries with a true loop in the database) and recall at 100%
-precision. Paired contrasts over sequences (units): mean difference, bootstrap 95% CI
-(10 000 resamples of the units), Wilcoxon signed-rank p (exact for few units), Holm-
-corrected over all contrasts and both metrics. Results as JSON with ``--json``.
+(true top-1 detections / queries with a true loop in the database), recall at 100%
+precision; and two mechanism figures: cross-visit repeatability (features of a query and of
+its nearest true match in the database whose depth-map 3D points are mutual nearest
+neighbours within ``--point-tol`` m are the same surface point; the share of those pairs
+with the same word) and the effective vocabulary size (exp of the entropy of the words the
+sequence's keyframes use). Paired contrasts over sequences (units) per word count: mean
+difference, bootstrap 95% CI (10 000 resamples of the units), Wilcoxon signed-rank p,
+Holm-corrected over every contrast, metric and word count.
 
-    python bench/bench_track_words.py [--scene-seeds 0 1 2 3 4 5] [--json out.json]
+Settings were frozen on validation scene seeds 0, 1, 2 (``--scene-seeds 0 1 2``) before the
+test run on the default seeds 10..29. ``--json`` writes everything; ``--record NAME`` the
+README's figures (``bench/figures.py``).
+
+    python bench/bench_track_words.py [--scene-seeds 10 11 ...] [--sizes 8000 1000] [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
 import json
+import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
+import cv2
+import faiss
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.stats import wilcoxon
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import figures  # noqa: E402
 from bench_place_recognition import loop_truth, pr_curve, two_lap_trajectory  # noqa: E402
 
 from orbslam_hgcn.datasets import open_sequence  # noqa: E402
 from orbslam_hgcn.features.orb import ORBExtractor  # noqa: E402
-from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence  # noqa: E402
 from orbslam_hgcn.map.database import KeyframeDatabase  # noqa: E402
+from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence  # noqa: E402
 from orbslam_hgcn.vocabulary import load_vocabulary  # noqa: E402
+from orbslam_hgcn.vocabulary.loading import SHIPPED  # noqa: E402
 from orbslam_hgcn.vocabulary.training.tracks import build_tracks  # noqa: E402
 
-ARMS = ("A0", "A1", "B0", "B0h", "orb")
-CONTRASTS = (("B0", "A0"), ("B0h", "A1"), ("B0h", "B0"), ("A1", "A0"))
 METRICS = ("AP", "recall@1")
+TEST_SEEDS = list(range(10, 30))
+FEATURE_CACHE_VERSION = 1  # bump when describe() or build_tracks() change what they give
 
 
-def causal_means(x: list[np.ndarray], tracks: list[np.ndarray], window: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per keyframe k: (rows of its features with an earlier track member in keyframes
-    k - window + 1 .. k, (R, d) means of those members' reduced descriptors x)."""
+@dataclasses.dataclass
+class Keyframes:
+    """One sequence's keyframes: what every arm gets.
+
+    frames: (K,) frame numbers at ``--fps``; desc, uv: per keyframe (N, 32) uint8 descriptors
+    and (N, 2) positions; tracks: per keyframe (N,) track ids (-1: none); window: keyframes a
+    track reaches back (itself included); gt: (K, K) bool loop truth; centres: (K, 3) camera
+    centres; points: per keyframe (N, 3) world points of the features from the depth map (NaN
+    where there is no depth).
+    """
+
+    name: str
+    frames: np.ndarray
+    desc: list[np.ndarray]
+    uv: list[np.ndarray]
+    tracks: list[np.ndarray]
+    window: int
+    gt: np.ndarray
+    centres: np.ndarray
+    points: list[np.ndarray]
+    _members: list | None = None
+
+    def members(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Per keyframe k: (rows: its features with at least two causal track members,
+        offsets (R + 1,), member keyframes, member feature indices); members of row r are
+        ``[offsets[r]:offsets[r + 1]]``, in keyframe order (k itself last)."""
+        if self._members is None:
+            self._members = causal_members(self.tracks, self.window)
+        return self._members
+
+
+def causal_members(tracks: list[np.ndarray], window: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """See :meth:`Keyframes.members`: members in keyframes k - window + 1 .. k."""
     out = []
-    for k in range(len(x)):
+    for k in range(len(tracks)):
         lo = max(0, k - window + 1)
-        ids = np.concatenate([tracks[j] for j in range(lo, k + 1)])
-        pts = np.concatenate([x[j] for j in range(lo, k + 1)]).astype(np.float64)
+        ids = np.concatenate(tracks[lo:k + 1])
+        kf = np.concatenate([np.full(len(tracks[j]), j, np.int64) for j in range(lo, k + 1)])
+        ix = np.concatenate([np.arange(len(tracks[j])) for j in range(lo, k + 1)])
         valid = ids >= 0
-        uid, inv, cnt = np.unique(ids[valid], return_inverse=True, return_counts=True)
-        sums = np.zeros((len(uid), pts.shape[1]))
-        np.add.at(sums, inv, pts[valid])
+        ids, kf, ix = ids[valid], kf[valid], ix[valid]
+        order = np.lexsort((kf, ids))  # by track, then keyframe
+        ids, kf, ix = ids[order], kf[order], ix[order]
+        uid, start, cnt = np.unique(ids, return_index=True, return_counts=True)
         t = tracks[k]
         pos = np.searchsorted(uid, t)
         has = (t >= 0) & (pos < len(uid))
         has[has] &= uid[pos[has]] == t[has]
         rows = np.flatnonzero(has)
         rows = rows[cnt[pos[rows]] >= 2]
-        out.append((rows, (sums[pos[rows]] / cnt[pos[rows], None]).astype(np.float32)))
+        sel = [np.arange(start[p], start[p] + cnt[p]) for p in pos[rows]]
+        take = np.concatenate(sel) if sel else np.zeros(0, np.int64)
+        offsets = np.concatenate([[0], np.cumsum([len(s) for s in sel], dtype=np.int64)])
+        out.append((rows, offsets, kf[take], ix[take]))
     return out
 
+
+# --- arms: (vocabulary, Keyframes) -> per keyframe (N,) words ---------------------------
+
+def lone_words(vocab, kfs: Keyframes) -> list[np.ndarray]:
+    return [vocab.transform_words(d) for d in kfs.desc]
+
+
+def track_mean_words(vocab, kfs: Keyframes) -> list[np.ndarray]:
+    """Word of the mean of the causal members' reduced descriptors (B0)."""
+    x = [vocab.project(d) for d in kfs.desc]
+    out = []
+    for k, (rows, offsets, mkf, mix) in enumerate(kfs.members()):
+        w = vocab.words_of_points(x[k])
+        if len(rows):
+            pts = np.stack([x[j][i] for j, i in zip(mkf.tolist(), mix.tolist())]).astype(np.float64)
+            means = np.add.reduceat(pts, offsets[:-1], axis=0) / np.diff(offsets)[:, None]
+            w[rows] = vocab.words_of_points(means.astype(np.float32))
+        out.append(w)
+    return out
+
+
+def distinctive(desc: np.ndarray) -> int:
+    """Index of ORB-SLAM's distinctive descriptor among (M, 32) uint8 descriptors: least
+    median Hamming distance to all of them (itself included, median = sorted[(M - 1) // 2]);
+    ties to the first."""
+    bits = np.unpackbits(desc, axis=1)
+    d = (bits[:, None, :] != bits[None, :, :]).sum(-1)
+    med = np.sort(d, axis=1)[:, (len(desc) - 1) // 2]
+    return int(np.argmin(med))
+
+
+def distinctive_words(vocab, kfs: Keyframes) -> list[np.ndarray]:
+    """Word of the track's distinctive descriptor among its causal members (B1)."""
+    out = []
+    for k, (rows, offsets, mkf, mix) in enumerate(kfs.members()):
+        w = vocab.transform_words(kfs.desc[k])
+        if len(rows):
+            picked = np.empty((len(rows), kfs.desc[k].shape[1]), np.uint8)
+            for r in range(len(rows)):
+                s, e = offsets[r], offsets[r + 1]
+                m = np.stack([kfs.desc[j][i] for j, i in zip(mkf[s:e].tolist(), mix[s:e].tolist())])
+                picked[r] = m[distinctive(m)]
+            w[rows] = vocab.transform_words(picked)
+        out.append(w)
+    return out
+
+
+ArmFn = Callable[[object, Keyframes], list]
+# name -> (vocabulary kind, words function)
+ARMS: dict[str, tuple[str, ArmFn]] = {
+    "A0": ("kmeans", lone_words),
+    "A1": ("hgcn", lone_words),
+    "B0": ("kmeans", track_mean_words),
+    "B1": ("kmeans", distinctive_words),
+    "orb": ("orb", lone_words),
+}
+CONTRASTS = (("B0", "A0"), ("B1", "A0"), ("A1", "A0"), ("B1", "B0"), ("orb", "A0"), ("C", "A0"), ("C", "B0"))
+# vocabulary kind -> (shipped name at the default size, file name in --vocab-1000)
+VOCAB_FILES = {"kmeans": ("kmeans", SHIPPED["kmeans"].name), "hgcn": ("hgcn", SHIPPED["hgcn"].name),
+               "orb": ("orb10k", SHIPPED["orb"].name)}
+
+
+def load_vocabs(size: int, vocab_1000: Path) -> dict[str, object]:
+    out = {}
+    for kind, (shipped, file) in VOCAB_FILES.items():
+        if size == 8000:
+            out[kind] = load_vocabulary(shipped)
+        else:
+            path = vocab_1000 / file
+            if not path.exists():
+                raise SystemExit(f"bench_track_words: {path} not found: make the 1000-word vocabularies with "
+                                 f"tools/train_default_vocabs.py --kinds kmeans orb hgcn --hgcn-words 1000 "
+                                 f"--orb-levels 3 --out-dir {vocab_1000}")
+            out[kind] = load_vocabulary(path)
+    return out
+
+
+# --- figures of one sequence -------------------------------------------------------------
 
 def scores(bows: list, frames: np.ndarray, gt: np.ndarray, min_gap: int) -> dict:
     """AP, recall@1 and recall at 100% precision of top-1 detections (one sequence)."""
@@ -95,7 +235,7 @@ def scores(bows: list, frames: np.ndarray, gt: np.ndarray, min_gap: int) -> dict
         s.append(res[0][1] if res else 0.0)
         correct.append(bool(res) and bool(gt[i, res[0][0]]))
         eligible.append(bool(gt[i, :added].any()))
-    correct = np.array(correct)
+    correct = np.array(correct, bool)
     n_pos = int(np.sum(eligible))
     prec, rec = pr_curve(np.array(s), correct, n_pos)
     full = prec >= 1.0 - 1e-12
@@ -105,8 +245,49 @@ def scores(bows: list, frames: np.ndarray, gt: np.ndarray, min_gap: int) -> dict
             "queries": len(s), "with_loop": n_pos}
 
 
+def effective_size(words: list[np.ndarray]) -> float:
+    """exp of the entropy of the word distribution over all the keyframes' features."""
+    counts = np.bincount(np.concatenate(words).astype(np.int64))
+    p = counts[counts > 0] / counts.sum()
+    return float(np.exp(-np.sum(p * np.log(p))))
+
+
+def same_points(kfs: Keyframes, min_gap: int, tol: float) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """Features of the same surface point seen on both visits: per query keyframe with a
+    true loop in its database, its nearest true match (camera centres) j and the feature
+    pairs (a in the query, b in j) whose world points are mutual nearest neighbours
+    within ``tol`` m. Returns [(query, j, a, b)]."""
+    out = []
+    for i in range(len(kfs.frames)):
+        older = np.flatnonzero(kfs.frames <= kfs.frames[i] - min_gap)
+        true = older[kfs.gt[i, older]]
+        if not len(true):
+            continue
+        j = int(true[np.argmin(np.linalg.norm(kfs.centres[true] - kfs.centres[i], axis=1))])
+        pa, pb = kfs.points[i], kfs.points[j]
+        va, vb = np.flatnonzero(np.isfinite(pa[:, 0])), np.flatnonzero(np.isfinite(pb[:, 0]))
+        if not len(va) or not len(vb):
+            continue
+        dab, ab = cKDTree(pb[vb]).query(pa[va], distance_upper_bound=tol)
+        _, ba = cKDTree(pa[va]).query(pb[vb])
+        ok = np.isfinite(dab)
+        ok[ok] &= ba[ab[ok]] == np.flatnonzero(ok)
+        out.append((i, j, va[ok], vb[ab[ok]]))
+    return out
+
+
+def repeatability(words: list[np.ndarray], pairs: list[tuple[int, int, np.ndarray, np.ndarray]]) -> float:
+    """Share of same-point feature pairs of the two visits that get the same word."""
+    same = sum(int(np.sum(words[i][a] == words[j][b])) for i, j, a, b in pairs)
+    n = sum(len(a) for _, _, a, _ in pairs)
+    return same / n if n else float("nan")
+
+
+# --- statistics ----------------------------------------------------------------------------
+
 def contrast(a: np.ndarray, b: np.ndarray, rng: np.random.Generator) -> dict:
-    d = np.asarray(a) - np.asarray(b)
+    """Paired contrast a - b over units: mean, bootstrap 95% CI, Wilcoxon signed-rank p."""
+    d = np.asarray(a, float) - np.asarray(b, float)
     boot = d[rng.integers(0, len(d), (10_000, len(d)))].mean(1)
     p = float(wilcoxon(d).pvalue) if np.any(d != 0) else 1.0
     return {"mean": float(d.mean()), "ci95": [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))],
@@ -114,7 +295,8 @@ def contrast(a: np.ndarray, b: np.ndarray, rng: np.random.Generator) -> dict:
 
 
 def holm(ps: list[float]) -> list[float]:
-    order = np.argsort(ps)
+    """Holm-adjusted p-values (step-down, monotone, capped at 1)."""
+    order = np.argsort(ps, kind="stable")
     out, running = [0.0] * len(ps), 0.0
     for rank, i in enumerate(order):
         running = max(running, min(1.0, (len(ps) - rank) * ps[i]))
@@ -122,88 +304,161 @@ def holm(ps: list[float]) -> list[float]:
     return out
 
 
+# --- sequences -----------------------------------------------------------------------------
+
+def describe(seq_dir: Path, cam, extractor: ORBExtractor) -> tuple[list, list, np.ndarray, list]:
+    """ORB features of every frame of a TUM-layout render with depth: descriptors, positions,
+    (K, 4, 4) camera poses and the features' world points from the depth map (NaN: no depth)."""
+    seq = open_sequence("tum", seq_dir)
+    depth_files = [line.split()[1] for line in (seq_dir / "depth.txt").read_text().splitlines()
+                   if line and not line.startswith("#")]
+    if len(depth_files) != len(seq):
+        raise SystemExit(f"bench_track_words: {seq_dir}: {len(depth_files)} depth images for {len(seq)} frames")
+    desc, uv, poses, points = [], [], [], []
+    for k in range(len(seq)):
+        rec = seq[k]
+        kps = extractor.extract(rec.image)
+        desc.append(kps.desc)
+        uv.append(np.asarray(kps.uv, np.float32))
+        poses.append(rec.T_wc)
+        depth = cv2.imread(str(seq_dir / depth_files[k]), cv2.IMREAD_UNCHANGED).astype(np.float64) / 5000.0
+        u = np.clip(np.rint(kps.uv[:, 0]).astype(int), 0, depth.shape[1] - 1)
+        v = np.clip(np.rint(kps.uv[:, 1]).astype(int), 0, depth.shape[0] - 1)
+        z = depth[v, u]
+        z[z <= 0] = np.nan
+        pc = np.stack([(kps.uv[:, 0] - cam.cx) / cam.fx * z, (kps.uv[:, 1] - cam.cy) / cam.fy * z, z], 1)
+        points.append(pc @ rec.T_wc[:3, :3].T + rec.T_wc[:3, 3])
+    return desc, uv, np.stack(poses), points
+
+
+def office_keyframes(cache_dir: Path, seed: int, args, extractor: ORBExtractor) -> Keyframes:
+    """Render (or reuse) office ``seed`` with depth at the keyframe rate, and describe it."""
+    gt_file = cache_dir / "two_lap_40s_wide.txt"
+    if not gt_file.exists():
+        two_lap_trajectory(gt_file)
+    rate = args.fps / args.kf_every
+    opts = SynthOptions(trajectory="replay", gt=str(gt_file), fps=rate, scene_seed=seed, noise=2.0,
+                        exposure_drift=0.1, seed=seed, depth=True)
+    seq_dir = render_sequence(cache_dir / f"office{seed}_two_laps_wide_{rate:g}fps_depth", opts, progress=False,
+                              cache=True)
+    # Features, tracks and depth points are kept beside the render, keyed by the extractor's settings.
+    key = hashlib.sha1(f"{FEATURE_CACHE_VERSION} {extractor.config!r}".encode()).hexdigest()[:12]
+    cached = seq_dir / f"keyframes_{key}.npz"
+    if cached.exists():
+        with np.load(cached) as z:
+            sizes, tid, poses = z["sizes"], z["tracks"], z["poses"]
+            cut = np.cumsum(sizes)[:-1]
+            desc, uv, points = np.split(z["desc"], cut), np.split(z["uv"], cut), np.split(z["points"], cut)
+    else:
+        desc, uv, poses, points = describe(seq_dir, opts.camera, extractor)
+        tid = build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
+        np.savez(cached, sizes=np.array([len(d) for d in desc]), desc=np.concatenate(desc), uv=np.concatenate(uv),
+                 points=np.concatenate(points), tracks=tid, poses=poses)
+    tracks = np.split(tid, np.cumsum([len(d) for d in desc])[:-1])
+    window = max(1, args.min_gap // args.kf_every)  # keyframes less than min_gap frames older, and itself
+    return Keyframes(f"office{seed}", np.arange(len(desc)) * args.kf_every, desc, uv, tracks, window,
+                     loop_truth(poses, args.dist, args.angle), poses[:, :3, 3], points)
+
+
+def run_sequence(kfs: Keyframes, vocabs: dict[int, dict], arms: dict[str, tuple[str, ArmFn]], args) -> dict:
+    pairs = same_points(kfs, args.min_gap, args.point_tol)
+    out: dict = {"keyframes": len(kfs.frames), "same_point_pairs": int(sum(len(a) for _, _, a, _ in pairs)),
+                 "features_with_track": float(np.mean([len(m[0]) / max(len(d), 1)
+                                                       for m, d in zip(kfs.members(), kfs.desc)]))}
+    for size, vs in vocabs.items():
+        for arm, (kind, fn) in arms.items():
+            words = fn(vs[kind], kfs)
+            bows = [vs[kind].bow_from_words(w) for w in words]
+            r = scores(bows, kfs.frames, kfs.gt, args.min_gap)
+            r["repeatability"] = repeatability(words, pairs)
+            r["effective_words"] = effective_size(words)
+            out[f"{size} {arm}"] = r
+    return out
+
+
+def summarise(per_seq: dict[str, dict], sizes: list[int], arms: list[str]) -> tuple[dict, dict]:
+    """Per size and arm the mean figures; the contrasts (with Holm p)."""
+    names = list(per_seq)
+    means = {}
+    for size in sizes:
+        for arm in arms:
+            rs = [per_seq[n][f"{size} {arm}"] for n in names]
+            means[f"{size} {arm}"] = {k: float(np.nanmean([r[k] for r in rs]))
+                                      for k in ("AP", "recall@1", "recall@P100", "repeatability", "effective_words")}
+    rng = np.random.default_rng(0)
+    table = {}
+    for size in sizes:
+        for metric in METRICS:
+            for a, b in CONTRASTS:
+                if a in arms and b in arms:
+                    va = np.array([per_seq[n][f"{size} {a}"][metric] for n in names])
+                    vb = np.array([per_seq[n][f"{size} {b}"][metric] for n in names])
+                    table[f"{size} {a}-{b} {metric}"] = contrast(va, vb, rng)
+    for key, p in zip(table, holm([c["wilcoxon_p"] for c in table.values()])):
+        table[key]["holm_p"] = p
+    return means, table
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cache-dir", type=Path, default=Path("/tmp/orbslam_hgcn_bench"))
-    ap.add_argument("--scene-seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4, 5])
+    ap.add_argument("--scene-seeds", type=int, nargs="+", default=TEST_SEEDS,
+                    help="office scene seeds (default: the test seeds 10..29; validation used 0 1 2)")
+    ap.add_argument("--sizes", type=int, nargs="+", choices=(8000, 1000), default=[8000, 1000])
+    ap.add_argument("--arms", nargs="+", choices=list(ARMS), default=list(ARMS))
+    ap.add_argument("--vocab-1000", type=Path, default=None, help="1000-word vocabularies (default CACHE/vocab1000)")
     ap.add_argument("--fps", type=float, default=10.0)
-    ap.add_argument("--kf-every", type=int, default=3)
+    ap.add_argument("--kf-every", type=int, default=3, help="a keyframe every this many frames (only those are rendered)")
     ap.add_argument("--min-gap", type=int, default=100, help="query keyframes at least this many frames older")
     ap.add_argument("--dist", type=float, default=0.5)
     ap.add_argument("--angle", type=float, default=30.0)
+    ap.add_argument("--point-tol", type=float, default=0.01, help="same surface point: world points within this (m)")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="faiss threads (word search is exact: the words do not depend on it; 1 is fastest on a "
+                         "busy machine)")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--record", metavar="NAME", default=None, help="write bench/results/NAME.json (bench/figures.py)")
     args = ap.parse_args(argv)
+    load_start = os.getloadavg()[0]
+    faiss.omp_set_num_threads(args.threads)
     t0 = time.perf_counter()
-    gt_file = two_lap_trajectory(args.cache_dir / "two_lap_40s_wide.txt")
-    vocabs = {"kmeans": load_vocabulary("kmeans"), "hgcn": load_vocabulary("hgcn"), "orb": load_vocabulary("orb10k")}
+    vocab_1000 = args.vocab_1000 or args.cache_dir / "vocab1000"
+    vocabs = {size: load_vocabs(size, vocab_1000) for size in args.sizes}
+    arms = {a: ARMS[a] for a in args.arms}
     extractor = ORBExtractor()
-    window = max(1, args.min_gap // args.kf_every)  # keyframes less than min_gap frames older, and itself
-    per_seq: dict[str, dict[str, dict]] = {}
+    per_seq: dict[str, dict] = {}
     for seed in args.scene_seeds:
-        opts = SynthOptions(trajectory="replay", gt=str(gt_file), fps=args.fps, scene_seed=seed,
-                            noise=2.0, exposure_drift=0.1, seed=seed)
-        seq_dir = render_sequence(args.cache_dir / f"office{seed}_two_laps_wide_{args.fps:g}fps", opts,
-                                  progress=False, cache=True)
-        seq = open_sequence("tum", seq_dir)
-        frames = np.arange(0, len(seq), args.kf_every)
-        desc, uv, poses = [], [], []
-        for f in frames:
-            rec = seq[int(f)]
-            kps = extractor.extract(rec.image)
-            desc.append(kps.desc)
-            uv.append(np.asarray(kps.uv, np.float32))
-            poses.append(rec.T_wc)
-        gt = loop_truth(np.stack(poses), args.dist, args.angle)
-        tid = build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
-        splits = np.cumsum([len(d) for d in desc])[:-1]
-        tracks = np.split(tid, splits)
-        bows: dict[str, list] = {}
-        tracked_share = []
-        for kind, arm_lone, arm_track in (("kmeans", "A0", "B0"), ("hgcn", "A1", "B0h")):
-            v = vocabs[kind]
-            x = [v.project(d) for d in desc]
-            lone = [v.words_of_points(xi) for xi in x]
-            means = causal_means(x, tracks, window)
-            bows[arm_lone] = [v.bow_from_words(w) for w in lone]
-            bows[arm_track] = []
-            for w, (rows, m) in zip(lone, means):
-                w = w.copy()
-                if len(rows):
-                    w[rows] = v.words_of_points(m)
-                bows[arm_track].append(v.bow_from_words(w))
-            tracked_share = [len(r) / max(len(xi), 1) for (r, _), xi in zip(means, x)]
-        bows["orb"] = [vocabs["orb"].bow(d) for d in desc]
-        name = f"office{seed}"
-        per_seq[name] = {arm: scores(bows[arm], frames, gt, args.min_gap) for arm in ARMS}
-        per_seq[name]["features_with_track_mean"] = float(np.mean(tracked_share))
-        line = "  ".join(f"{arm} AP {per_seq[name][arm]['AP']:.3f} R@1 {per_seq[name][arm]['recall@1']:.3f}"
-                         for arm in ARMS)
-        print(f"{name}: {len(frames)} keyframes, {100 * np.mean(tracked_share):.0f}% of features with a track "
-              f"mean; {line}", flush=True)
-    rng = np.random.default_rng(0)
-    names = list(per_seq)
-    table = {}
-    for metric in METRICS:
-        for a, b in CONTRASTS:
-            va = np.array([per_seq[n][a][metric] for n in names])
-            vb = np.array([per_seq[n][b][metric] for n in names])
-            table[f"{a}-{b} {metric}"] = contrast(va, vb, rng)
-    for key, p in zip(table, holm([c["wilcoxon_p"] for c in table.values()])):
-        table[key]["holm_p"] = p
-    print(f"\nper arm, mean over {len(names)} sequences (min over sequences .. max):")
-    for arm in ARMS:
-        for metric in METRICS:
-            vals = [per_seq[n][arm][metric] for n in names]
-            print(f"  {arm:4s} {metric:9s} {np.mean(vals):.3f} ({min(vals):.3f} .. {max(vals):.3f})")
+        kfs = office_keyframes(args.cache_dir, seed, args, extractor)
+        per_seq[kfs.name] = r = run_sequence(kfs, vocabs, arms, args)
+        print(f"{kfs.name}: {r['keyframes']} keyframes, {100 * r['features_with_track']:.0f}% of features with a "
+              f"causal track, {r['same_point_pairs']} same-point pairs", flush=True)
+        for size in args.sizes:
+            print(f"  {size:5d} " + "  ".join(f"{a} {r[f'{size} {a}']['AP']:.3f}/{r[f'{size} {a}']['recall@1']:.3f}"
+                                             for a in arms) + "   (AP/R@1)", flush=True)
+    means, table = summarise(per_seq, args.sizes, list(arms))
+    print(f"\nper arm, mean over {len(per_seq)} sequences: AP, recall@1, recall@100%P, same-point word "
+          f"repeatability, effective words (exp entropy)")
+    for key, m in means.items():
+        print(f"  {key:10s} AP {m['AP']:.3f}  R@1 {m['recall@1']:.3f}  R@100P {m['recall@P100']:.3f}  "
+              f"repeat {m['repeatability']:.3f}  eff. words {m['effective_words']:.0f}")
     print("\npaired contrasts over sequences: mean difference [bootstrap 95% CI], wins/losses, Wilcoxon p, Holm p")
     for key, c in table.items():
-        print(f"  {key:18s} {c['mean']:+.4f} [{c['ci95'][0]:+.4f}, {c['ci95'][1]:+.4f}]  {c['wins']}/{c['losses']}  "
-              f"p {c['wilcoxon_p']:.3f}  Holm {c['holm_p']:.3f}")
+        print(f"  {key:22s} {c['mean']:+.4f} [{c['ci95'][0]:+.4f}, {c['ci95'][1]:+.4f}]  {c['wins']}/{c['losses']}  "
+              f"p {c['wilcoxon_p']:.4f}  Holm {c['holm_p']:.4f}")
     print(f"({time.perf_counter() - t0:.0f} s)")
     if args.json is not None:
-        args.json.write_text(json.dumps({"settings": vars(args) | {"cache_dir": str(args.cache_dir),
-                                                                    "json": str(args.json)},
-                                         "sequences": per_seq, "contrasts": table}, indent=1))
+        settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+        args.json.write_text(json.dumps({"settings": settings, "sequences": per_seq, "means": means,
+                                         "contrasts": table}, indent=1))
+    if args.record:
+        figs = [(f"{key} AP / R@1 / R@100P / repeat. / eff. words",
+                 f"{m['AP']:.3f} / {m['recall@1']:.3f} / {m['recall@P100']:.3f} / {m['repeatability']:.3f} / "
+                 f"{m['effective_words']:.0f}") for key, m in means.items()]
+        figs += [(key, f"{c['mean']:+.3f} [{c['ci95'][0]:+.3f}, {c['ci95'][1]:+.3f}], Holm p {c['holm_p']:.3g}")
+                 for key, c in table.items()]
+        figures.record(args.record, f"Keyframe words in place recognition: arms over {len(per_seq)} rendered "
+                                    f"two-lap offices (mean; contrasts with bootstrap 95% CI)", figs,
+                       bench_file=__file__, load_start=load_start)
     return 0
 
 
