@@ -44,8 +44,10 @@ difference, bootstrap 95% CI (10 000 resamples of the units), Wilcoxon signed-ra
 Holm-corrected over every contrast, metric and word count.
 
 Settings were frozen on validation scene seeds 0, 1, 2 (``--scene-seeds 0 1 2``) before the
-test run on the default seeds 10..29. ``--json`` writes everything; ``--record NAME`` the
-README's figures (``bench/figures.py``).
+test run on the default seeds 10..29. Renders, and each sequence's features, tracks and
+depth points, are kept in ``--cache-dir``; ``--prepare-only`` makes them (run a few at once
+on disjoint seeds), after which a run only computes the arms. ``--json`` writes everything;
+``--record NAME`` the README's figures (``bench/figures.py``).
 
     python bench/bench_track_words.py [--scene-seeds 10 11 ...] [--sizes 8000 1000] [--json out.json]
 """
@@ -56,6 +58,7 @@ import argparse
 import dataclasses
 import hashlib
 import json
+import multiprocessing
 import os
 import sys
 import time
@@ -74,7 +77,6 @@ from bench_place_recognition import loop_truth, pr_curve, two_lap_trajectory  # 
 
 from orbslam_hgcn.datasets import open_sequence  # noqa: E402
 from orbslam_hgcn.features.orb import ORBExtractor  # noqa: E402
-from orbslam_hgcn.map.database import KeyframeDatabase  # noqa: E402
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence  # noqa: E402
 from orbslam_hgcn.vocabulary import load_vocabulary  # noqa: E402
 from orbslam_hgcn.vocabulary.loading import SHIPPED  # noqa: E402
@@ -107,7 +109,7 @@ class Keyframes:
     points: list[np.ndarray]
     _members: list | None = None
 
-    def members(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    def members(self) -> list[Members]:
         """Per keyframe k: (rows: its features with at least two causal track members,
         offsets (R + 1,), member keyframes, member feature indices); members of row r are
         ``[offsets[r]:offsets[r + 1]]``, in keyframe order (k itself last)."""
@@ -116,7 +118,10 @@ class Keyframes:
         return self._members
 
 
-def causal_members(tracks: list[np.ndarray], window: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+Members = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def causal_members(tracks: list[np.ndarray], window: int) -> list[Members]:
     """See :meth:`Keyframes.members`: members in keyframes k - window + 1 .. k."""
     out = []
     for k in range(len(tracks)):
@@ -148,41 +153,59 @@ def lone_words(vocab, kfs: Keyframes) -> list[np.ndarray]:
     return [vocab.transform_words(d) for d in kfs.desc]
 
 
+def _member_rows(kfs: Keyframes, mkf: np.ndarray, mix: np.ndarray) -> np.ndarray:
+    """Rows of members (keyframe, feature) in the keyframes' concatenated features."""
+    start = np.concatenate([[0], np.cumsum([len(d) for d in kfs.desc])[:-1]])
+    return start[mkf] + mix
+
+
 def track_mean_words(vocab, kfs: Keyframes) -> list[np.ndarray]:
     """Word of the mean of the causal members' reduced descriptors (B0)."""
     x = [vocab.project(d) for d in kfs.desc]
+    allx = np.concatenate(x).astype(np.float64)
     out = []
     for k, (rows, offsets, mkf, mix) in enumerate(kfs.members()):
         w = vocab.words_of_points(x[k])
         if len(rows):
-            pts = np.stack([x[j][i] for j, i in zip(mkf.tolist(), mix.tolist())]).astype(np.float64)
-            means = np.add.reduceat(pts, offsets[:-1], axis=0) / np.diff(offsets)[:, None]
+            means = np.add.reduceat(allx[_member_rows(kfs, mkf, mix)], offsets[:-1], axis=0) / np.diff(offsets)[:, None]
             w[rows] = vocab.words_of_points(means.astype(np.float32))
         out.append(w)
     return out
+
+
+POPCOUNT = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(1).astype(np.int32)
+
+
+def distinctive_batch(groups: np.ndarray) -> np.ndarray:
+    """:func:`distinctive` of each of (G, M, 32) uint8 groups of M descriptors: (G,) indices."""
+    d = POPCOUNT[groups[:, :, None, :] ^ groups[:, None, :, :]].sum(-1)
+    med = np.sort(d, axis=2)[:, :, (groups.shape[1] - 1) // 2]
+    return np.argmin(med, axis=1)
 
 
 def distinctive(desc: np.ndarray) -> int:
     """Index of ORB-SLAM's distinctive descriptor among (M, 32) uint8 descriptors: least
     median Hamming distance to all of them (itself included, median = sorted[(M - 1) // 2]);
     ties to the first."""
-    bits = np.unpackbits(desc, axis=1)
-    d = (bits[:, None, :] != bits[None, :, :]).sum(-1)
-    med = np.sort(d, axis=1)[:, (len(desc) - 1) // 2]
-    return int(np.argmin(med))
+    return int(distinctive_batch(desc[None])[0])
 
 
 def distinctive_words(vocab, kfs: Keyframes) -> list[np.ndarray]:
     """Word of the track's distinctive descriptor among its causal members (B1)."""
+    alld = np.concatenate(kfs.desc)
     out = []
     for k, (rows, offsets, mkf, mix) in enumerate(kfs.members()):
         w = vocab.transform_words(kfs.desc[k])
         if len(rows):
-            picked = np.empty((len(rows), kfs.desc[k].shape[1]), np.uint8)
-            for r in range(len(rows)):
-                s, e = offsets[r], offsets[r + 1]
-                m = np.stack([kfs.desc[j][i] for j, i in zip(mkf[s:e].tolist(), mix[s:e].tolist())])
-                picked[r] = m[distinctive(m)]
+            members = alld[_member_rows(kfs, mkf, mix)]
+            size = np.diff(offsets)
+            picked = np.empty((len(rows), alld.shape[1]), np.uint8)
+            for m in np.unique(size):  # groups of one size at a time, in chunks
+                g = np.flatnonzero(size == m)
+                for c in range(0, len(g), 512):
+                    gc = g[c:c + 512]
+                    block = members[offsets[gc][:, None] + np.arange(m)]
+                    picked[gc] = block[np.arange(len(gc)), distinctive_batch(block)]
             w[rows] = vocab.transform_words(picked)
         out.append(w)
     return out
@@ -203,37 +226,42 @@ VOCAB_FILES = {"kmeans": ("kmeans", SHIPPED["kmeans"].name), "hgcn": ("hgcn", SH
                "orb": ("orb10k", SHIPPED["orb"].name)}
 
 
-def load_vocabs(size: int, vocab_1000: Path) -> dict[str, object]:
-    out = {}
-    for kind, (shipped, file) in VOCAB_FILES.items():
-        if size == 8000:
-            out[kind] = load_vocabulary(shipped)
-        else:
-            path = vocab_1000 / file
-            if not path.exists():
-                raise SystemExit(f"bench_track_words: {path} not found: make the 1000-word vocabularies with "
-                                 f"tools/train_default_vocabs.py --kinds kmeans orb hgcn --hgcn-words 1000 "
-                                 f"--orb-levels 3 --out-dir {vocab_1000}")
-            out[kind] = load_vocabulary(path)
+def vocab_files(size: int, vocab_1000: Path) -> dict[str, str | Path]:
+    """Vocabulary kind -> shipped name or file, at a word count (exits when one is missing)."""
+    if size == 8000:
+        return {kind: shipped for kind, (shipped, _) in VOCAB_FILES.items()}
+    out = {kind: vocab_1000 / file for kind, (_, file) in VOCAB_FILES.items()}
+    missing = [str(p) for p in out.values() if not p.exists()]
+    if missing:
+        print(f"bench_track_words: {', '.join(missing)} not found: make the 1000-word vocabularies with "
+              f"tools/train_default_vocabs.py --kinds kmeans orb hgcn --hgcn-words 1000 --orb-levels 3 "
+              f"--out-dir {vocab_1000}", file=sys.stderr)
+        raise SystemExit(2)
     return out
 
 
 # --- figures of one sequence -------------------------------------------------------------
 
 def scores(bows: list, frames: np.ndarray, gt: np.ndarray, min_gap: int) -> dict:
-    """AP, recall@1 and recall at 100% precision of top-1 detections (one sequence)."""
+    """AP, recall@1 and recall at 100% precision of top-1 detections (one sequence).
+
+    Keyframe i queries the keyframes at least ``min_gap`` frames older, as the keyframe
+    database does (:meth:`KeyframeDatabase.query`: L1 score ``sum_w min(q_w, v_w)``, ties to
+    the lowest id, no detection when no keyframe shares a word), on dense vectors."""
+    n_words = 1 + max((int(b.words.max()) for b in bows if len(b.words)), default=0)
+    v = np.zeros((len(bows), n_words), np.float32)
+    for i, b in enumerate(bows):
+        v[i, b.words] = b.weights
     s, correct, eligible = [], [], []
-    db = KeyframeDatabase()
-    added = 0
     for i in range(len(bows)):
-        while added < len(bows) and frames[added] <= frames[i] - min_gap:
-            db.add(added, bows[added])
-            added += 1
+        added = int(np.searchsorted(frames, frames[i] - min_gap, side="right"))
         if added == 0:
             continue
-        res = db.query(bows[i], max_results=1)
-        s.append(res[0][1] if res else 0.0)
-        correct.append(bool(res) and bool(gt[i, res[0][0]]))
+        nz = np.flatnonzero(v[i])
+        sc = np.minimum(v[:added, nz], v[i, nz]).sum(1, dtype=np.float64)
+        j = int(np.argmax(sc))
+        s.append(float(sc[j]))
+        correct.append(sc[j] > 0 and bool(gt[i, j]))
         eligible.append(bool(gt[i, :added].any()))
     correct = np.array(correct, bool)
     n_pos = int(np.sum(eligible))
@@ -399,6 +427,23 @@ def summarise(per_seq: dict[str, dict], sizes: list[int], arms: list[str]) -> tu
     return means, table
 
 
+_WORKER: dict = {}
+
+
+def _init_worker(args) -> None:
+    faiss.omp_set_num_threads(args.threads)
+    vocab_1000 = args.vocab_1000 or args.cache_dir / "vocab1000"
+    vocabs = {size: {kind: load_vocabulary(f) for kind, f in vocab_files(size, vocab_1000).items()}
+              for size in args.sizes}
+    _WORKER.update(args=args, extractor=ORBExtractor(), vocabs=vocabs)
+
+
+def _sequence(seed: int) -> tuple[str, dict]:
+    args = _WORKER["args"]
+    kfs = office_keyframes(args.cache_dir, seed, args, _WORKER["extractor"])
+    return kfs.name, run_sequence(kfs, _WORKER["vocabs"], {a: ARMS[a] for a in args.arms}, args)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cache-dir", type=Path, default=Path("/tmp/orbslam_hgcn_bench"))
@@ -408,7 +453,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--arms", nargs="+", choices=list(ARMS), default=list(ARMS))
     ap.add_argument("--vocab-1000", type=Path, default=None, help="1000-word vocabularies (default CACHE/vocab1000)")
     ap.add_argument("--fps", type=float, default=10.0)
-    ap.add_argument("--kf-every", type=int, default=3, help="a keyframe every this many frames (only those are rendered)")
+    ap.add_argument("--kf-every", type=int, default=3,
+                    help="a keyframe every this many frames (only those are rendered)")
     ap.add_argument("--min-gap", type=int, default=100, help="query keyframes at least this many frames older")
     ap.add_argument("--dist", type=float, default=0.5)
     ap.add_argument("--angle", type=float, default=30.0)
@@ -416,26 +462,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1,
                     help="faiss threads (word search is exact: the words do not depend on it; 1 is fastest on a "
                          "busy machine)")
+    ap.add_argument("--jobs", type=int, default=1, help="sequences processed at once (processes)")
+    ap.add_argument("--prepare-only", action="store_true",
+                    help="only render and describe the sequences into --cache-dir (several can run at once)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--record", metavar="NAME", default=None, help="write bench/results/NAME.json (bench/figures.py)")
     args = ap.parse_args(argv)
     load_start = os.getloadavg()[0]
     faiss.omp_set_num_threads(args.threads)
     t0 = time.perf_counter()
-    vocab_1000 = args.vocab_1000 or args.cache_dir / "vocab1000"
-    vocabs = {size: load_vocabs(size, vocab_1000) for size in args.sizes}
-    arms = {a: ARMS[a] for a in args.arms}
-    extractor = ORBExtractor()
+    if args.prepare_only:
+        extractor = ORBExtractor()
+        for seed in args.scene_seeds:
+            office_keyframes(args.cache_dir, seed, args, extractor)
+            print(f"office{seed}: rendered and described ({time.perf_counter() - t0:.0f} s)", flush=True)
+        return 0
+    for size in args.sizes:
+        vocab_files(size, args.vocab_1000 or args.cache_dir / "vocab1000")
     per_seq: dict[str, dict] = {}
-    for seed in args.scene_seeds:
-        kfs = office_keyframes(args.cache_dir, seed, args, extractor)
-        per_seq[kfs.name] = r = run_sequence(kfs, vocabs, arms, args)
-        print(f"{kfs.name}: {r['keyframes']} keyframes, {100 * r['features_with_track']:.0f}% of features with a "
-              f"causal track, {r['same_point_pairs']} same-point pairs", flush=True)
-        for size in args.sizes:
-            print(f"  {size:5d} " + "  ".join(f"{a} {r[f'{size} {a}']['AP']:.3f}/{r[f'{size} {a}']['recall@1']:.3f}"
-                                             for a in arms) + "   (AP/R@1)", flush=True)
-    means, table = summarise(per_seq, args.sizes, list(arms))
+    with multiprocessing.get_context("spawn").Pool(args.jobs, _init_worker, (args,)) as pool:
+        for name, r in pool.imap(_sequence, args.scene_seeds):
+            per_seq[name] = r
+            print(f"{name}: {r['keyframes']} keyframes, {100 * r['features_with_track']:.0f}% of features with a "
+                  f"causal track, {r['same_point_pairs']} same-point pairs", flush=True)
+            for size in args.sizes:
+                print(f"  {size:5d} " + "  ".join(f"{a} {r[f'{size} {a}']['AP']:.3f}/{r[f'{size} {a}']['recall@1']:.3f}"
+                                                 for a in args.arms) + "   (AP/R@1)", flush=True)
+    arms = list(args.arms)
+    means, table = summarise(per_seq, args.sizes, arms)
     print(f"\nper arm, mean over {len(per_seq)} sequences: AP, recall@1, recall@100%P, same-point word "
           f"repeatability, effective words (exp entropy)")
     for key, m in means.items():

@@ -158,3 +158,32 @@ def test_summary_leaves_out_contrasts_of_missing_arms(tw):
     ps = [c["wilcoxon_p"] for c in table.values()]
     assert [c["holm_p"] for c in table.values()] == pytest.approx(tw.holm(ps))
     assert means["8000 A0"]["AP"] == pytest.approx(np.mean([per_seq[n]["8000 A0"]["AP"] for n in per_seq]))
+
+
+def test_scores_agree_with_the_keyframe_database(tw):
+    from orbslam_hgcn.map.database import KeyframeDatabase
+
+    rng = np.random.default_rng(4)
+    bows = []
+    for _ in range(40):
+        words = np.unique(rng.integers(0, 60, rng.integers(1, 12)))
+        w = rng.random(len(words))
+        bows.append(BowVector(words, w / w.sum()))
+    frames = np.arange(40) * 3
+    gt = rng.random((40, 40)) < 0.3
+    got = tw.scores(bows, frames, gt, 30)
+    # reference: the database's own query, keyframe by keyframe
+    db, added, s, correct, eligible = KeyframeDatabase(), 0, [], [], []
+    for i in range(40):
+        while frames[added] <= frames[i] - 30:
+            db.add(added, bows[added])
+            added += 1
+        if added == 0:
+            continue
+        res = db.query(bows[i], max_results=1)
+        s.append(res[0][1] if res else 0.0)
+        correct.append(bool(res) and bool(gt[i, res[0][0]]))
+        eligible.append(bool(gt[i, :added].any()))
+    assert got["queries"] == len(s) and got["with_loop"] == sum(eligible)
+    assert got["recall@1"] == pytest.approx(sum(correct) / sum(eligible))
+    assert 0 < got["recall@1"] < 1
