@@ -427,6 +427,19 @@ def summarise(per_seq: dict[str, dict], sizes: list[int], arms: list[str]) -> tu
     return means, table
 
 
+def record_figures(name: str, means: dict, table: dict, n_sequences: int, load_start: float) -> Path | None:
+    """``bench/results/NAME.json`` for the README: per arm and word count the mean figures,
+    then every contrast with its CI and Holm p."""
+    figs = [(f"{key} AP / R@1 / R@100P / repeat. / eff. words",
+             f"{m['AP']:.3f} / {m['recall@1']:.3f} / {m['recall@P100']:.3f} / {m['repeatability']:.3f} / "
+             f"{m['effective_words']:.0f}") for key, m in means.items()]
+    figs += [(key, f"{c['mean']:+.3f} [{c['ci95'][0]:+.3f}, {c['ci95'][1]:+.3f}], {c['wins']}/{c['losses']}, "
+                   f"Holm p {c['holm_p']:.3g}") for key, c in table.items()]
+    return figures.record(name, f"Keyframe words in place recognition: arms over {n_sequences} rendered two-lap "
+                                f"offices (means; paired contrasts with bootstrap 95% CI, wins/losses)", figs,
+                          bench_file=__file__, load_start=load_start)
+
+
 _WORKER: dict = {}
 
 
@@ -505,14 +518,7 @@ def main(argv: list[str] | None = None) -> int:
         args.json.write_text(json.dumps({"settings": settings, "sequences": per_seq, "means": means,
                                          "contrasts": table}, indent=1))
     if args.record:
-        figs = [(f"{key} AP / R@1 / R@100P / repeat. / eff. words",
-                 f"{m['AP']:.3f} / {m['recall@1']:.3f} / {m['recall@P100']:.3f} / {m['repeatability']:.3f} / "
-                 f"{m['effective_words']:.0f}") for key, m in means.items()]
-        figs += [(key, f"{c['mean']:+.3f} [{c['ci95'][0]:+.3f}, {c['ci95'][1]:+.3f}], Holm p {c['holm_p']:.3g}")
-                 for key, c in table.items()]
-        figures.record(args.record, f"Keyframe words in place recognition: arms over {len(per_seq)} rendered "
-                                    f"two-lap offices (mean; contrasts with bootstrap 95% CI)", figs,
-                       bench_file=__file__, load_start=load_start)
+        record_figures(args.record, means, table, len(per_seq), load_start)
     return 0
 
 

@@ -187,3 +187,16 @@ def test_scores_agree_with_the_keyframe_database(tw):
     assert got["queries"] == len(s) and got["with_loop"] == sum(eligible)
     assert got["recall@1"] == pytest.approx(sum(correct) / sum(eligible))
     assert 0 < got["recall@1"] < 1
+
+
+def test_recorded_figures(tw, monkeypatch):
+    got = {}
+    monkeypatch.setattr(tw.figures, "record", lambda name, title, figs, **kw: got.update(name=name, figs=figs, **kw))
+    means = {"8000 A0": {"AP": 0.8123, "recall@1": 0.9, "recall@P100": 0.25, "repeatability": 0.07,
+                         "effective_words": 7275.4}}
+    table = {"8000 B0-A0 AP": {"mean": -0.0212, "ci95": [-0.04, 0.001], "wins": 3, "losses": 9, "holm_p": 0.0312}}
+    tw.record_figures("track_words", means, table, 12, 1.5)
+    assert got["name"] == "track_words" and got["load_start"] == 1.5
+    assert got["figs"] == [("8000 A0 AP / R@1 / R@100P / repeat. / eff. words", "0.812 / 0.900 / 0.250 / 0.070 / 7275"),
+                           ("8000 B0-A0 AP", "-0.021 [-0.040, +0.001], 3/9, Holm p 0.0312")]
+    assert got["bench_file"].endswith("bench_track_words.py")
