@@ -226,11 +226,11 @@ VOCAB_FILES = {"kmeans": ("kmeans", SHIPPED["kmeans"].name), "hgcn": ("hgcn", SH
                "orb": ("orb10k", SHIPPED["orb"].name)}
 
 
-def vocab_files(size: int, vocab_1000: Path) -> dict[str, str | Path]:
+def vocab_files(size: int, vocab_1000: Path, kinds: set[str]) -> dict[str, str | Path]:
     """Vocabulary kind -> shipped name or file, at a word count (exits when one is missing)."""
     if size == 8000:
-        return {kind: shipped for kind, (shipped, _) in VOCAB_FILES.items()}
-    out = {kind: vocab_1000 / file for kind, (_, file) in VOCAB_FILES.items()}
+        return {kind: shipped for kind, (shipped, _) in VOCAB_FILES.items() if kind in kinds}
+    out = {kind: vocab_1000 / file for kind, (_, file) in VOCAB_FILES.items() if kind in kinds}
     missing = [str(p) for p in out.values() if not p.exists()]
     if missing:
         print(f"bench_track_words: {', '.join(missing)} not found: make the 1000-word vocabularies with "
@@ -446,7 +446,8 @@ _WORKER: dict = {}
 def _init_worker(args) -> None:
     faiss.omp_set_num_threads(args.threads)
     vocab_1000 = args.vocab_1000 or args.cache_dir / "vocab1000"
-    vocabs = {size: {kind: load_vocabulary(f) for kind, f in vocab_files(size, vocab_1000).items()}
+    kinds = {ARMS[a][0] for a in args.arms}
+    vocabs = {size: {kind: load_vocabulary(f) for kind, f in vocab_files(size, vocab_1000, kinds).items()}
               for size in args.sizes}
     _WORKER.update(args=args, extractor=ORBExtractor(), vocabs=vocabs)
 
@@ -491,7 +492,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"office{seed}: rendered and described ({time.perf_counter() - t0:.0f} s)", flush=True)
         return 0
     for size in args.sizes:
-        vocab_files(size, args.vocab_1000 or args.cache_dir / "vocab1000")
+        vocab_files(size, args.vocab_1000 or args.cache_dir / "vocab1000", {ARMS[a][0] for a in args.arms})
     per_seq: dict[str, dict] = {}
     with multiprocessing.get_context("spawn").Pool(args.jobs, _init_worker, (args,)) as pool:
         for name, r in pool.imap(_sequence, args.scene_seeds):
