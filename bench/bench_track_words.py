@@ -226,17 +226,29 @@ VOCAB_FILES = {"kmeans": ("kmeans", SHIPPED["kmeans"].name), "hgcn": ("hgcn", SH
                "orb": ("orb10k", SHIPPED["orb"].name)}
 
 
-def vocab_files(size: int, vocab_1000: Path, kinds: set[str]) -> dict[str, str | Path]:
-    """Vocabulary kind -> shipped name or file, at a word count (exits when one is missing)."""
+def vocab_files(size: int, vocab_1000: Path) -> dict[str, str | Path]:
+    """Vocabulary kind -> shipped name or file at a word count (the kinds whose file exists)."""
     if size == 8000:
-        return {kind: shipped for kind, (shipped, _) in VOCAB_FILES.items() if kind in kinds}
-    out = {kind: vocab_1000 / file for kind, (_, file) in VOCAB_FILES.items() if kind in kinds}
-    missing = [str(p) for p in out.values() if not p.exists()]
-    if missing:
-        print(f"bench_track_words: {', '.join(missing)} not found: make the 1000-word vocabularies with "
-              f"tools/train_default_vocabs.py --kinds kmeans orb hgcn --hgcn-words 1000 --orb-levels 3 "
-              f"--out-dir {vocab_1000}", file=sys.stderr)
-        raise SystemExit(2)
+        return {kind: shipped for kind, (shipped, _) in VOCAB_FILES.items()}
+    out = {kind: vocab_1000 / file for kind, (_, file) in VOCAB_FILES.items()}
+    return {kind: p for kind, p in out.items() if p.exists()}
+
+
+def arms_by_size(sizes: list[int], arms: list[str], vocab_1000: Path) -> dict[int, list[str]]:
+    """The arms run at each word count: those whose vocabulary exists there (the others are
+    named on stderr; no arm at all at a word count exits with status 2)."""
+    out = {}
+    for size in sizes:
+        have = vocab_files(size, vocab_1000)
+        out[size] = [a for a in arms if ARMS[a][0] in have]
+        left = [a for a in arms if a not in out[size]]
+        if left:
+            kinds = sorted({ARMS[a][0] for a in left})
+            print(f"bench_track_words: no {size}-word {', '.join(kinds)} vocabulary in {vocab_1000} (make them with "
+                  f"tools/train_default_vocabs.py --kinds kmeans orb hgcn --hgcn-words 1000 --orb-levels 3 "
+                  f"--out-dir {vocab_1000}): arm(s) {', '.join(left)} left out at {size} words", file=sys.stderr)
+        if not out[size]:
+            raise SystemExit(2)
     return out
 
 
@@ -388,13 +400,14 @@ def office_keyframes(cache_dir: Path, seed: int, args, extractor: ORBExtractor) 
                      loop_truth(poses, args.dist, args.angle), poses[:, :3, 3], points)
 
 
-def run_sequence(kfs: Keyframes, vocabs: dict[int, dict], arms: dict[str, tuple[str, ArmFn]], args) -> dict:
+def run_sequence(kfs: Keyframes, vocabs: dict[int, dict], arms: dict[int, list[str]], args) -> dict:
     pairs = same_points(kfs, args.min_gap, args.point_tol)
     out: dict = {"keyframes": len(kfs.frames), "same_point_pairs": int(sum(len(a) for _, _, a, _ in pairs)),
                  "features_with_track": float(np.mean([len(m[0]) / max(len(d), 1)
                                                        for m, d in zip(kfs.members(), kfs.desc)]))}
     for size, vs in vocabs.items():
-        for arm, (kind, fn) in arms.items():
+        for arm in arms[size]:
+            kind, fn = ARMS[arm]
             words = fn(vs[kind], kfs)
             bows = [vs[kind].bow_from_words(w) for w in words]
             r = scores(bows, kfs.frames, kfs.gt, args.min_gap)
@@ -404,21 +417,21 @@ def run_sequence(kfs: Keyframes, vocabs: dict[int, dict], arms: dict[str, tuple[
     return out
 
 
-def summarise(per_seq: dict[str, dict], sizes: list[int], arms: list[str]) -> tuple[dict, dict]:
-    """Per size and arm the mean figures; the contrasts (with Holm p)."""
+def summarise(per_seq: dict[str, dict], arms: dict[int, list[str]]) -> tuple[dict, dict]:
+    """Per word count and arm the mean figures; the contrasts (with Holm p)."""
     names = list(per_seq)
     means = {}
-    for size in sizes:
-        for arm in arms:
+    for size in arms:
+        for arm in arms[size]:
             rs = [per_seq[n][f"{size} {arm}"] for n in names]
             means[f"{size} {arm}"] = {k: float(np.nanmean([r[k] for r in rs]))
                                       for k in ("AP", "recall@1", "recall@P100", "repeatability", "effective_words")}
     rng = np.random.default_rng(0)
     table = {}
-    for size in sizes:
+    for size in arms:
         for metric in METRICS:
             for a, b in CONTRASTS:
-                if a in arms and b in arms:
+                if a in arms[size] and b in arms[size]:
                     va = np.array([per_seq[n][f"{size} {a}"][metric] for n in names])
                     vb = np.array([per_seq[n][f"{size} {b}"][metric] for n in names])
                     table[f"{size} {a}-{b} {metric}"] = contrast(va, vb, rng)
@@ -446,16 +459,15 @@ _WORKER: dict = {}
 def _init_worker(args) -> None:
     faiss.omp_set_num_threads(args.threads)
     vocab_1000 = args.vocab_1000 or args.cache_dir / "vocab1000"
-    kinds = {ARMS[a][0] for a in args.arms}
-    vocabs = {size: {kind: load_vocabulary(f) for kind, f in vocab_files(size, vocab_1000, kinds).items()}
-              for size in args.sizes}
+    vocabs = {size: {kind: load_vocabulary(f) for kind, f in vocab_files(size, vocab_1000).items()
+                     if any(ARMS[a][0] == kind for a in arms)} for size, arms in args.size_arms.items()}
     _WORKER.update(args=args, extractor=ORBExtractor(), vocabs=vocabs)
 
 
 def _sequence(seed: int) -> tuple[str, dict]:
     args = _WORKER["args"]
     kfs = office_keyframes(args.cache_dir, seed, args, _WORKER["extractor"])
-    return kfs.name, run_sequence(kfs, _WORKER["vocabs"], {a: ARMS[a] for a in args.arms}, args)
+    return kfs.name, run_sequence(kfs, _WORKER["vocabs"], args.size_arms, args)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -491,19 +503,17 @@ def main(argv: list[str] | None = None) -> int:
             office_keyframes(args.cache_dir, seed, args, extractor)
             print(f"office{seed}: rendered and described ({time.perf_counter() - t0:.0f} s)", flush=True)
         return 0
-    for size in args.sizes:
-        vocab_files(size, args.vocab_1000 or args.cache_dir / "vocab1000", {ARMS[a][0] for a in args.arms})
+    args.size_arms = arms = arms_by_size(args.sizes, args.arms, args.vocab_1000 or args.cache_dir / "vocab1000")
     per_seq: dict[str, dict] = {}
     with multiprocessing.get_context("spawn").Pool(args.jobs, _init_worker, (args,)) as pool:
         for name, r in pool.imap(_sequence, args.scene_seeds):
             per_seq[name] = r
             print(f"{name}: {r['keyframes']} keyframes, {100 * r['features_with_track']:.0f}% of features with a "
                   f"causal track, {r['same_point_pairs']} same-point pairs", flush=True)
-            for size in args.sizes:
+            for size, size_arms in arms.items():
                 print(f"  {size:5d} " + "  ".join(f"{a} {r[f'{size} {a}']['AP']:.3f}/{r[f'{size} {a}']['recall@1']:.3f}"
-                                                 for a in args.arms) + "   (AP/R@1)", flush=True)
-    arms = list(args.arms)
-    means, table = summarise(per_seq, args.sizes, arms)
+                                                 for a in size_arms) + "   (AP/R@1)", flush=True)
+    means, table = summarise(per_seq, arms)
     print(f"\nper arm, mean over {len(per_seq)} sequences: AP, recall@1, recall@100%P, same-point word "
           f"repeatability, effective words (exp entropy)")
     for key, m in means.items():

@@ -151,7 +151,7 @@ def test_summary_leaves_out_contrasts_of_missing_arms(tw):
     for n in range(6):
         per_seq[f"s{n}"] = {f"8000 {a}": {"AP": rng.random(), "recall@1": rng.random(), "recall@P100": 0.1,
                                           "repeatability": 0.2, "effective_words": 10.0} for a in ("A0", "B0")}
-    means, table = tw.summarise(per_seq, [8000], ["A0", "B0"])
+    means, table = tw.summarise(per_seq, {8000: ["A0", "B0"]})
     assert set(table) == {"8000 B0-A0 AP", "8000 B0-A0 recall@1"}
     d = [per_seq[n]["8000 B0"]["AP"] - per_seq[n]["8000 A0"]["AP"] for n in per_seq]
     assert table["8000 B0-A0 AP"]["mean"] == pytest.approx(np.mean(d))
