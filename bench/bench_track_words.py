@@ -1,103 +1,299 @@
-"""Track words against lone words in place recognition: the ablation of the keyframe BoW.
+"""Track words against lone words in place recognition: the ablation that picks the keyframe BoW.
 
-Arms (same sequences, keyframes, tracks and database protocol):
+Arms (same sequences, keyframes, tracks and database protocol; :data:`ARMS`):
 
-* ``A0``  k-means words of lone descriptors (the shipped k-means vocabulary);
-* ``A1``  the shipped HGCN's words of lone descriptors (its network on one descriptor);
+* ``A0``  k-means words of lone descriptors;
+* ``A1``  the HGCN's words of lone descriptors (its network on one descriptor);
 * ``B0``  k-means word of each feature's causal track mean (no network);
-* ``B0h`` the shipped HGCN's word of the causal track mean (the network on the mean);
-* ``C``   the graph network over the causal track mates with mean aggregation (its
-  k-means words; ``--graph-mean``, the shipped ``hgcn_graph_mean``), ``C-att`` the same
-  with attention (``--graph``, the shipped ``hgcn_graph``): :mod:`orbslam_hgcn.vocabulary.track_network`;
-* ``orb`` the ORB tree of about the flat vocabularies' size (``orb10k``) on lone descriptors.
+* ``B1``  k-means word of the track's distinctive descriptor (ORB-SLAM's rule: the causal
+  member whose median Hamming distance to the members, itself included, is least; ties to
+  the oldest);
+* ``C``   the track network of ``hgcn_graph_mean`` over each feature's causal track mates
+  (mean aggregation in the centre's tangent space; its k-means words), ``C-att`` the same
+  network with attention (``hgcn_graph``): :mod:`orbslam_hgcn.vocabulary.track_network`
+  (8000 words only: no 1000-word track network is trained);
+* ``orb`` the ORB tree on lone descriptors.
 
-Sequences: the place-recognition offices of ``bench_place_recognition.py`` (two laps round
-a desk, one rendered sequence per scene seed, not training scenes), keyframes every
-``--kf-every`` frames. Tracks: features matched between consecutive keyframes
-(:func:`orbslam_hgcn.vocabulary.training.tracks.build_tracks`: mutual nearest neighbours, ratio
-test, RANSAC fundamental matrix), standing in for the map's point observations. A
-keyframe's track mean uses the members in itself and the keyframes before it that are
-less than ``--min-gap`` frames older (causal, and never reaching the keyframes a query is
+Each arm runs at two word counts (``--sizes``): the shipped vocabularies (k-means and HGCN
+8000 words, the ORB tree ``orb10k`` with 10 000) and 1000 words (k-means and HGCN with 1000
+words, the ORB tree with k = 10, L = 3), trained on the shipped vocabularies' imagery by
+``tools/train_default_vocabs.py --kinds kmeans orb hgcn --hgcn-words 1000 --orb-levels 3
+--out-dir DIR`` (``--vocab-1000 DIR``, default ``CACHE/vocab1000``).
+
+An arm is a vocabulary kind and a function ``(vocabulary, Keyframes) -> per keyframe (N,)
+words``; another arm is one more entry in :data:`ARMS` (and its contrasts in
+:data:`CONTRASTS`, which are left out while an arm is missing).
+
+Sequences: place-recognition offices (two laps round a desk, the second 0.3 m further out
+and 0.15 m lower; scene seeds outside the vocabularies' training seeds 1001..), rendered
+with depth at the keyframe rate (``--fps`` / ``--kf-every``; only the keyframes are
+rendered). Tracks: features matched between consecutive keyframes
+(:func:`orbslam_hgcn.vocabulary.training.tracks.build_tracks`: mutual nearest neighbours,
+ratio test, RANSAC fundamental matrix), standing in for the map's point observations. A
+keyframe's track uses the members in itself and the keyframes before it that are less
+than ``--min-gap`` frames older (causal, and never reaching the keyframes a query is
 allowed to match, so a query and its true match never share a track member); a feature
 whose track has no such earlier member keeps its lone word. Each keyframe queries a
 database of the keyframes at least ``--min-gap`` frames older; its best match is a
 detection, true when the two cameras are within ``--dist`` m and ``--angle`` degrees.
 
 Per sequence and arm: average precision (PR curve over the detections' scores), recall@1
-(true top-1 detections / queries with a true loop in the database) and recall at 100%
-precision. Paired contrasts over sequences (units): mean difference, bootstrap 95% CI
-(10 000 resamples of the units), Wilcoxon signed-rank p (exact for few units), Holm-
-corrected over all contrasts and both metrics. Results as JSON with ``--json``.
+(true top-1 detections / queries with a true loop in the database), recall at 100%
+precision; and two mechanism figures: cross-visit repeatability (features of a query and of
+its nearest true match in the database whose depth-map 3D points are mutual nearest
+neighbours within ``--point-tol`` m are the same surface point; the share of those pairs
+with the same word) and the effective vocabulary size (exp of the entropy of the words the
+sequence's keyframes use). Paired contrasts over sequences (units) per word count: mean
+difference, bootstrap 95% CI (10 000 resamples of the units), Wilcoxon signed-rank p,
+Holm-corrected over every contrast, metric and word count.
 
-    python bench/bench_track_words.py [--scene-seeds 0 1 2 3 4 5] [--json out.json]
+Settings were frozen on validation scene seeds 0, 1, 2 (``--scene-seeds 0 1 2``) before the
+test run on the default seeds 10..29, by a rule fixed beforehand and blind to the arms'
+differences: keep the defaults (keyframe every 3 frames at 10 fps, database gap 100 frames,
+loop within 0.5 m and 30 degrees) unless a validation sequence has fewer than 50 queries
+with a true loop or A0's AP is above 0.95 or below 0.3. They passed (139 queries with a
+loop per sequence, A0 AP 0.70-0.84); no other setting was tried. Renders, and each sequence's features, tracks and
+depth points, are kept in ``--cache-dir``; ``--prepare-only`` makes them (run a few at once
+on disjoint seeds), after which a run only computes the arms. ``--json`` writes everything;
+``--record NAME`` the README's figures (``bench/figures.py``).
+
+    python bench/bench_track_words.py [--scene-seeds 10 11 ...] [--sizes 8000 1000] [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
 import json
+import multiprocessing
+import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
+import cv2
+import faiss
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.stats import wilcoxon
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import figures  # noqa: E402
 from bench_place_recognition import loop_truth, pr_curve, two_lap_trajectory  # noqa: E402
 
 from orbslam_hgcn.datasets import open_sequence  # noqa: E402
 from orbslam_hgcn.features.orb import ORBExtractor  # noqa: E402
 from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence  # noqa: E402
-from orbslam_hgcn.map.database import KeyframeDatabase  # noqa: E402
 from orbslam_hgcn.vocabulary import load_vocabulary  # noqa: E402
+from orbslam_hgcn.vocabulary.loading import SHIPPED  # noqa: E402
 from orbslam_hgcn.vocabulary.track_network import window_words  # noqa: E402
 from orbslam_hgcn.vocabulary.training.tracks import build_tracks  # noqa: E402
 
-ARMS = ("A0", "A1", "B0", "B0h", "C", "C-att", "orb")
-CONTRASTS = (("B0", "A0"), ("B0h", "A1"), ("B0h", "B0"), ("A1", "A0"), ("C-att", "A0"), ("C-att", "B0"),
-             ("C", "B0"))
 METRICS = ("AP", "recall@1")
+TEST_SEEDS = list(range(10, 30))
+FEATURE_CACHE_VERSION = 1  # bump when describe() or build_tracks() change what they give
 
 
-def causal_means(x: list[np.ndarray], tracks: list[np.ndarray], window: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per keyframe k: (rows of its features with an earlier track member in keyframes
-    k - window + 1 .. k, (R, d) means of those members' reduced descriptors x)."""
+@dataclasses.dataclass
+class Keyframes:
+    """One sequence's keyframes: what every arm gets.
+
+    frames: (K,) frame numbers at ``--fps``; desc, uv: per keyframe (N, 32) uint8 descriptors
+    and (N, 2) positions; tracks: per keyframe (N,) track ids (-1: none); window: keyframes a
+    track reaches back (itself included); gt: (K, K) bool loop truth; centres: (K, 3) camera
+    centres; points: per keyframe (N, 3) world points of the features from the depth map (NaN
+    where there is no depth).
+    """
+
+    name: str
+    frames: np.ndarray
+    desc: list[np.ndarray]
+    uv: list[np.ndarray]
+    tracks: list[np.ndarray]
+    window: int
+    gt: np.ndarray
+    centres: np.ndarray
+    points: list[np.ndarray]
+    _members: list | None = None
+
+    def members(self) -> list[Members]:
+        """Per keyframe k: (rows: its features with at least two causal track members,
+        offsets (R + 1,), member keyframes, member feature indices); members of row r are
+        ``[offsets[r]:offsets[r + 1]]``, in keyframe order (k itself last)."""
+        if self._members is None:
+            self._members = causal_members(self.tracks, self.window)
+        return self._members
+
+
+Members = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def causal_members(tracks: list[np.ndarray], window: int) -> list[Members]:
+    """See :meth:`Keyframes.members`: members in keyframes k - window + 1 .. k."""
     out = []
-    for k in range(len(x)):
+    for k in range(len(tracks)):
         lo = max(0, k - window + 1)
-        ids = np.concatenate([tracks[j] for j in range(lo, k + 1)])
-        pts = np.concatenate([x[j] for j in range(lo, k + 1)]).astype(np.float64)
+        ids = np.concatenate(tracks[lo:k + 1])
+        kf = np.concatenate([np.full(len(tracks[j]), j, np.int64) for j in range(lo, k + 1)])
+        ix = np.concatenate([np.arange(len(tracks[j])) for j in range(lo, k + 1)])
         valid = ids >= 0
-        uid, inv, cnt = np.unique(ids[valid], return_inverse=True, return_counts=True)
-        sums = np.zeros((len(uid), pts.shape[1]))
-        np.add.at(sums, inv, pts[valid])
+        ids, kf, ix = ids[valid], kf[valid], ix[valid]
+        order = np.lexsort((kf, ids))  # by track, then keyframe
+        ids, kf, ix = ids[order], kf[order], ix[order]
+        uid, start, cnt = np.unique(ids, return_index=True, return_counts=True)
         t = tracks[k]
         pos = np.searchsorted(uid, t)
         has = (t >= 0) & (pos < len(uid))
         has[has] &= uid[pos[has]] == t[has]
         rows = np.flatnonzero(has)
         rows = rows[cnt[pos[rows]] >= 2]
-        out.append((rows, (sums[pos[rows]] / cnt[pos[rows], None]).astype(np.float32)))
+        sel = [np.arange(start[p], start[p] + cnt[p]) for p in pos[rows]]
+        take = np.concatenate(sel) if sel else np.zeros(0, np.int64)
+        offsets = np.concatenate([[0], np.cumsum([len(s) for s in sel], dtype=np.int64)])
+        out.append((rows, offsets, kf[take], ix[take]))
     return out
 
 
+# --- arms: (vocabulary, Keyframes) -> per keyframe (N,) words ---------------------------
+
+def lone_words(vocab, kfs: Keyframes) -> list[np.ndarray]:
+    return [vocab.transform_words(d) for d in kfs.desc]
+
+
+def _member_rows(kfs: Keyframes, mkf: np.ndarray, mix: np.ndarray) -> np.ndarray:
+    """Rows of members (keyframe, feature) in the keyframes' concatenated features."""
+    start = np.concatenate([[0], np.cumsum([len(d) for d in kfs.desc])[:-1]])
+    return start[mkf] + mix
+
+
+def track_mean_words(vocab, kfs: Keyframes) -> list[np.ndarray]:
+    """Word of the mean of the causal members' reduced descriptors (B0)."""
+    x = [vocab.project(d) for d in kfs.desc]
+    allx = np.concatenate(x).astype(np.float64)
+    out = []
+    for k, (rows, offsets, mkf, mix) in enumerate(kfs.members()):
+        w = vocab.words_of_points(x[k])
+        if len(rows):
+            means = np.add.reduceat(allx[_member_rows(kfs, mkf, mix)], offsets[:-1], axis=0) / np.diff(offsets)[:, None]
+            w[rows] = vocab.words_of_points(means.astype(np.float32))
+        out.append(w)
+    return out
+
+
+POPCOUNT = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(1).astype(np.int32)
+
+
+def distinctive_batch(groups: np.ndarray) -> np.ndarray:
+    """:func:`distinctive` of each of (G, M, 32) uint8 groups of M descriptors: (G,) indices."""
+    d = POPCOUNT[groups[:, :, None, :] ^ groups[:, None, :, :]].sum(-1)
+    med = np.sort(d, axis=2)[:, :, (groups.shape[1] - 1) // 2]
+    return np.argmin(med, axis=1)
+
+
+def distinctive(desc: np.ndarray) -> int:
+    """Index of ORB-SLAM's distinctive descriptor among (M, 32) uint8 descriptors: least
+    median Hamming distance to all of them (itself included, median = sorted[(M - 1) // 2]);
+    ties to the first."""
+    return int(distinctive_batch(desc[None])[0])
+
+
+def distinctive_words(vocab, kfs: Keyframes) -> list[np.ndarray]:
+    """Word of the track's distinctive descriptor among its causal members (B1)."""
+    alld = np.concatenate(kfs.desc)
+    out = []
+    for k, (rows, offsets, mkf, mix) in enumerate(kfs.members()):
+        w = vocab.transform_words(kfs.desc[k])
+        if len(rows):
+            members = alld[_member_rows(kfs, mkf, mix)]
+            size = np.diff(offsets)
+            picked = np.empty((len(rows), alld.shape[1]), np.uint8)
+            for m in np.unique(size):  # groups of one size at a time, in chunks
+                g = np.flatnonzero(size == m)
+                for c in range(0, len(g), 512):
+                    gc = g[c:c + 512]
+                    block = members[offsets[gc][:, None] + np.arange(m)]
+                    picked[gc] = block[np.arange(len(gc)), distinctive_batch(block)]
+            w[rows] = vocab.transform_words(picked)
+        out.append(w)
+    return out
+
+
+ArmFn = Callable[[object, Keyframes], list]
+def network_words(vocab, kfs: Keyframes) -> list[np.ndarray]:
+    """Words of the vocabulary's track network over each feature's causal track mates (C, C-att)."""
+    return window_words(vocab, kfs.desc, kfs.tracks, kfs.window)
+
+
+# name -> (vocabulary kind, words function)
+ARMS: dict[str, tuple[str, ArmFn]] = {
+    "A0": ("kmeans", lone_words),
+    "A1": ("hgcn", lone_words),
+    "B0": ("kmeans", track_mean_words),
+    "B1": ("kmeans", distinctive_words),
+    "C": ("graph_mean", network_words),
+    "C-att": ("graph", network_words),
+    "orb": ("orb", lone_words),
+}
+CONTRASTS = (("B0", "A0"), ("B1", "A0"), ("A1", "A0"), ("B1", "B0"), ("orb", "A0"), ("C", "A0"), ("C", "B0"),
+             ("C-att", "A0"), ("C-att", "B0"))
+# vocabulary kind -> (shipped name at the default size, file name in --vocab-1000)
+VOCAB_FILES = {"kmeans": ("kmeans", SHIPPED["kmeans"].name), "hgcn": ("hgcn", SHIPPED["hgcn"].name),
+               "orb": ("orb10k", SHIPPED["orb"].name),
+               "graph": ("hgcn_graph", "vocab_hgcn_graph.npz"), "graph_mean": ("hgcn_graph_mean", "vocab_hgcn_graph_mean.npz")}
+
+
+def vocab_files(size: int, vocab_1000: Path) -> dict[str, str | Path]:
+    """Vocabulary kind -> shipped name or file at a word count (the kinds whose file exists)."""
+    if size == 8000:
+        return {kind: shipped for kind, (shipped, _) in VOCAB_FILES.items()}
+    out = {kind: vocab_1000 / file for kind, (_, file) in VOCAB_FILES.items()}
+    return {kind: p for kind, p in out.items() if p.exists()}
+
+
+def arms_by_size(sizes: list[int], arms: list[str], vocab_1000: Path) -> dict[int, list[str]]:
+    """The arms run at each word count: those whose vocabulary exists there (the others are
+    named on stderr; no arm at all at a word count exits with status 2)."""
+    out = {}
+    for size in sizes:
+        have = vocab_files(size, vocab_1000)
+        out[size] = [a for a in arms if ARMS[a][0] in have]
+        left = [a for a in arms if a not in out[size]]
+        if left:
+            kinds = sorted({ARMS[a][0] for a in left})
+            print(f"bench_track_words: no {size}-word {', '.join(kinds)} vocabulary in {vocab_1000} (make them with "
+                  f"tools/train_default_vocabs.py --kinds kmeans orb hgcn --hgcn-words 1000 --orb-levels 3 "
+                  f"--out-dir {vocab_1000}): arm(s) {', '.join(left)} left out at {size} words", file=sys.stderr)
+        if not out[size]:
+            raise SystemExit(2)
+    return out
+
+
+# --- figures of one sequence -------------------------------------------------------------
+
 def scores(bows: list, frames: np.ndarray, gt: np.ndarray, min_gap: int) -> dict:
-    """AP, recall@1 and recall at 100% precision of top-1 detections (one sequence)."""
+    """AP, recall@1 and recall at 100% precision of top-1 detections (one sequence).
+
+    Keyframe i queries the keyframes at least ``min_gap`` frames older, as the keyframe
+    database does (:meth:`KeyframeDatabase.query`: L1 score ``sum_w min(q_w, v_w)``, ties to
+    the lowest id, no detection when no keyframe shares a word), on dense vectors."""
+    n_words = 1 + max((int(b.words.max()) for b in bows if len(b.words)), default=0)
+    v = np.zeros((len(bows), n_words), np.float32)
+    for i, b in enumerate(bows):
+        v[i, b.words] = b.weights
     s, correct, eligible = [], [], []
-    db = KeyframeDatabase()
-    added = 0
     for i in range(len(bows)):
-        while added < len(bows) and frames[added] <= frames[i] - min_gap:
-            db.add(added, bows[added])
-            added += 1
+        added = int(np.searchsorted(frames, frames[i] - min_gap, side="right"))
         if added == 0:
             continue
-        res = db.query(bows[i], max_results=1)
-        s.append(res[0][1] if res else 0.0)
-        correct.append(bool(res) and bool(gt[i, res[0][0]]))
+        nz = np.flatnonzero(v[i])
+        sc = np.minimum(v[:added, nz], v[i, nz]).sum(1, dtype=np.float64)
+        j = int(np.argmax(sc))
+        s.append(float(sc[j]))
+        correct.append(sc[j] > 0 and bool(gt[i, j]))
         eligible.append(bool(gt[i, :added].any()))
-    correct = np.array(correct)
+    correct = np.array(correct, bool)
     n_pos = int(np.sum(eligible))
     prec, rec = pr_curve(np.array(s), correct, n_pos)
     full = prec >= 1.0 - 1e-12
@@ -107,8 +303,49 @@ def scores(bows: list, frames: np.ndarray, gt: np.ndarray, min_gap: int) -> dict
             "queries": len(s), "with_loop": n_pos}
 
 
+def effective_size(words: list[np.ndarray]) -> float:
+    """exp of the entropy of the word distribution over all the keyframes' features."""
+    counts = np.bincount(np.concatenate(words).astype(np.int64))
+    p = counts[counts > 0] / counts.sum()
+    return float(np.exp(-np.sum(p * np.log(p))))
+
+
+def same_points(kfs: Keyframes, min_gap: int, tol: float) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """Features of the same surface point seen on both visits: per query keyframe with a
+    true loop in its database, its nearest true match (camera centres) j and the feature
+    pairs (a in the query, b in j) whose world points are mutual nearest neighbours
+    within ``tol`` m. Returns [(query, j, a, b)]."""
+    out = []
+    for i in range(len(kfs.frames)):
+        older = np.flatnonzero(kfs.frames <= kfs.frames[i] - min_gap)
+        true = older[kfs.gt[i, older]]
+        if not len(true):
+            continue
+        j = int(true[np.argmin(np.linalg.norm(kfs.centres[true] - kfs.centres[i], axis=1))])
+        pa, pb = kfs.points[i], kfs.points[j]
+        va, vb = np.flatnonzero(np.isfinite(pa[:, 0])), np.flatnonzero(np.isfinite(pb[:, 0]))
+        if not len(va) or not len(vb):
+            continue
+        dab, ab = cKDTree(pb[vb]).query(pa[va], distance_upper_bound=tol)
+        _, ba = cKDTree(pa[va]).query(pb[vb])
+        ok = np.isfinite(dab)
+        ok[ok] &= ba[ab[ok]] == np.flatnonzero(ok)
+        out.append((i, j, va[ok], vb[ab[ok]]))
+    return out
+
+
+def repeatability(words: list[np.ndarray], pairs: list[tuple[int, int, np.ndarray, np.ndarray]]) -> float:
+    """Share of same-point feature pairs of the two visits that get the same word."""
+    same = sum(int(np.sum(words[i][a] == words[j][b])) for i, j, a, b in pairs)
+    n = sum(len(a) for _, _, a, _ in pairs)
+    return same / n if n else float("nan")
+
+
+# --- statistics ----------------------------------------------------------------------------
+
 def contrast(a: np.ndarray, b: np.ndarray, rng: np.random.Generator) -> dict:
-    d = np.asarray(a) - np.asarray(b)
+    """Paired contrast a - b over units: mean, bootstrap 95% CI, Wilcoxon signed-rank p."""
+    d = np.asarray(a, float) - np.asarray(b, float)
     boot = d[rng.integers(0, len(d), (10_000, len(d)))].mean(1)
     p = float(wilcoxon(d).pvalue) if np.any(d != 0) else 1.0
     return {"mean": float(d.mean()), "ci95": [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))],
@@ -116,7 +353,8 @@ def contrast(a: np.ndarray, b: np.ndarray, rng: np.random.Generator) -> dict:
 
 
 def holm(ps: list[float]) -> list[float]:
-    order = np.argsort(ps)
+    """Holm-adjusted p-values (step-down, monotone, capped at 1)."""
+    order = np.argsort(ps, kind="stable")
     out, running = [0.0] * len(ps), 0.0
     for rank, i in enumerate(order):
         running = max(running, min(1.0, (len(ps) - rank) * ps[i]))
@@ -124,94 +362,192 @@ def holm(ps: list[float]) -> list[float]:
     return out
 
 
+# --- sequences -----------------------------------------------------------------------------
+
+def describe(seq_dir: Path, cam, extractor: ORBExtractor) -> tuple[list, list, np.ndarray, list]:
+    """ORB features of every frame of a TUM-layout render with depth: descriptors, positions,
+    (K, 4, 4) camera poses and the features' world points from the depth map (NaN: no depth)."""
+    seq = open_sequence("tum", seq_dir)
+    depth_files = [line.split()[1] for line in (seq_dir / "depth.txt").read_text().splitlines()
+                   if line and not line.startswith("#")]
+    if len(depth_files) != len(seq):
+        raise SystemExit(f"bench_track_words: {seq_dir}: {len(depth_files)} depth images for {len(seq)} frames")
+    desc, uv, poses, points = [], [], [], []
+    for k in range(len(seq)):
+        rec = seq[k]
+        kps = extractor.extract(rec.image)
+        desc.append(kps.desc)
+        uv.append(np.asarray(kps.uv, np.float32))
+        poses.append(rec.T_wc)
+        depth = cv2.imread(str(seq_dir / depth_files[k]), cv2.IMREAD_UNCHANGED).astype(np.float64) / 5000.0
+        u = np.clip(np.rint(kps.uv[:, 0]).astype(int), 0, depth.shape[1] - 1)
+        v = np.clip(np.rint(kps.uv[:, 1]).astype(int), 0, depth.shape[0] - 1)
+        z = depth[v, u]
+        z[z <= 0] = np.nan
+        pc = np.stack([(kps.uv[:, 0] - cam.cx) / cam.fx * z, (kps.uv[:, 1] - cam.cy) / cam.fy * z, z], 1)
+        points.append(pc @ rec.T_wc[:3, :3].T + rec.T_wc[:3, 3])
+    return desc, uv, np.stack(poses), points
+
+
+def office_keyframes(cache_dir: Path, seed: int, args, extractor: ORBExtractor) -> Keyframes:
+    """Render (or reuse) office ``seed`` with depth at the keyframe rate, and describe it."""
+    gt_file = cache_dir / "two_lap_40s_wide.txt"
+    if not gt_file.exists():
+        two_lap_trajectory(gt_file)
+    rate = args.fps / args.kf_every
+    opts = SynthOptions(trajectory="replay", gt=str(gt_file), fps=rate, scene_seed=seed, noise=2.0,
+                        exposure_drift=0.1, seed=seed, depth=True)
+    seq_dir = render_sequence(cache_dir / f"office{seed}_two_laps_wide_{rate:g}fps_depth", opts, progress=False,
+                              cache=True)
+    # Features, tracks and depth points are kept beside the render, keyed by the extractor's settings.
+    key = hashlib.sha1(f"{FEATURE_CACHE_VERSION} {extractor.config!r}".encode()).hexdigest()[:12]
+    cached = seq_dir / f"keyframes_{key}.npz"
+    if cached.exists():
+        with np.load(cached) as z:
+            sizes, tid, poses = z["sizes"], z["tracks"], z["poses"]
+            cut = np.cumsum(sizes)[:-1]
+            desc, uv, points = np.split(z["desc"], cut), np.split(z["uv"], cut), np.split(z["points"], cut)
+    else:
+        desc, uv, poses, points = describe(seq_dir, opts.camera, extractor)
+        tid = build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
+        np.savez(cached, sizes=np.array([len(d) for d in desc]), desc=np.concatenate(desc), uv=np.concatenate(uv),
+                 points=np.concatenate(points), tracks=tid, poses=poses)
+    tracks = np.split(tid, np.cumsum([len(d) for d in desc])[:-1])
+    window = max(1, args.min_gap // args.kf_every)  # keyframes less than min_gap frames older, and itself
+    return Keyframes(f"office{seed}", np.arange(len(desc)) * args.kf_every, desc, uv, tracks, window,
+                     loop_truth(poses, args.dist, args.angle), poses[:, :3, 3], points)
+
+
+def run_sequence(kfs: Keyframes, vocabs: dict[int, dict], arms: dict[int, list[str]], args) -> dict:
+    pairs = same_points(kfs, args.min_gap, args.point_tol)
+    out: dict = {"keyframes": len(kfs.frames), "same_point_pairs": int(sum(len(a) for _, _, a, _ in pairs)),
+                 "features_with_track": float(np.mean([len(m[0]) / max(len(d), 1)
+                                                       for m, d in zip(kfs.members(), kfs.desc)]))}
+    for size, vs in vocabs.items():
+        for arm in arms[size]:
+            kind, fn = ARMS[arm]
+            words = fn(vs[kind], kfs)
+            bows = [vs[kind].bow_from_words(w) for w in words]
+            r = scores(bows, kfs.frames, kfs.gt, args.min_gap)
+            r["repeatability"] = repeatability(words, pairs)
+            r["effective_words"] = effective_size(words)
+            out[f"{size} {arm}"] = r
+    return out
+
+
+def summarise(per_seq: dict[str, dict], arms: dict[int, list[str]]) -> tuple[dict, dict]:
+    """Per word count and arm the mean figures; the contrasts (with Holm p)."""
+    names = list(per_seq)
+    means = {}
+    for size in arms:
+        for arm in arms[size]:
+            rs = [per_seq[n][f"{size} {arm}"] for n in names]
+            means[f"{size} {arm}"] = {k: float(np.nanmean([r[k] for r in rs]))
+                                      for k in ("AP", "recall@1", "recall@P100", "repeatability", "effective_words")}
+    rng = np.random.default_rng(0)
+    table = {}
+    for size in arms:
+        for metric in METRICS:
+            for a, b in CONTRASTS:
+                if a in arms[size] and b in arms[size]:
+                    va = np.array([per_seq[n][f"{size} {a}"][metric] for n in names])
+                    vb = np.array([per_seq[n][f"{size} {b}"][metric] for n in names])
+                    table[f"{size} {a}-{b} {metric}"] = contrast(va, vb, rng)
+    for key, p in zip(table, holm([c["wilcoxon_p"] for c in table.values()])):
+        table[key]["holm_p"] = p
+    return means, table
+
+
+def record_figures(name: str, means: dict, table: dict, n_sequences: int, load_start: float) -> Path | None:
+    """``bench/results/NAME.json`` for the README: per arm and word count the mean figures,
+    then every contrast with its CI and Holm p."""
+    figs = [(f"{key} AP / R@1 / R@100P / repeat. / eff. words",
+             f"{m['AP']:.3f} / {m['recall@1']:.3f} / {m['recall@P100']:.3f} / {m['repeatability']:.3f} / "
+             f"{m['effective_words']:.0f}") for key, m in means.items()]
+    figs += [(key, f"{c['mean']:+.3f} [{c['ci95'][0]:+.3f}, {c['ci95'][1]:+.3f}], {c['wins']}/{c['losses']}, "
+                   f"Holm p {c['holm_p']:.3g}") for key, c in table.items()]
+    return figures.record(name, f"Keyframe words in place recognition: arms over {n_sequences} rendered two-lap "
+                                f"offices (means; paired contrasts with bootstrap 95% CI, wins/losses)", figs,
+                          bench_file=__file__, load_start=load_start)
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(args) -> None:
+    faiss.omp_set_num_threads(args.threads)
+    vocab_1000 = args.vocab_1000 or args.cache_dir / "vocab1000"
+    vocabs = {size: {kind: load_vocabulary(f) for kind, f in vocab_files(size, vocab_1000).items()
+                     if any(ARMS[a][0] == kind for a in arms)} for size, arms in args.size_arms.items()}
+    _WORKER.update(args=args, extractor=ORBExtractor(), vocabs=vocabs)
+
+
+def _sequence(seed: int) -> tuple[str, dict]:
+    args = _WORKER["args"]
+    kfs = office_keyframes(args.cache_dir, seed, args, _WORKER["extractor"])
+    return kfs.name, run_sequence(kfs, _WORKER["vocabs"], args.size_arms, args)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cache-dir", type=Path, default=Path("/tmp/orbslam_hgcn_bench"))
-    ap.add_argument("--scene-seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4, 5])
+    ap.add_argument("--scene-seeds", type=int, nargs="+", default=TEST_SEEDS,
+                    help="office scene seeds (default: the test seeds 10..29; validation used 0 1 2)")
+    ap.add_argument("--sizes", type=int, nargs="+", choices=(8000, 1000), default=[8000, 1000])
+    ap.add_argument("--arms", nargs="+", choices=list(ARMS), default=list(ARMS))
+    ap.add_argument("--vocab-1000", type=Path, default=None, help="1000-word vocabularies (default CACHE/vocab1000)")
     ap.add_argument("--fps", type=float, default=10.0)
-    ap.add_argument("--kf-every", type=int, default=3)
+    ap.add_argument("--kf-every", type=int, default=3,
+                    help="a keyframe every this many frames (only those are rendered)")
     ap.add_argument("--min-gap", type=int, default=100, help="query keyframes at least this many frames older")
     ap.add_argument("--dist", type=float, default=0.5)
     ap.add_argument("--angle", type=float, default=30.0)
+    ap.add_argument("--point-tol", type=float, default=0.01, help="same surface point: world points within this (m)")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="faiss threads (word search is exact: the words do not depend on it; 1 is fastest on a "
+                         "busy machine)")
+    ap.add_argument("--jobs", type=int, default=1, help="sequences processed at once (processes)")
+    ap.add_argument("--prepare-only", action="store_true",
+                    help="only render and describe the sequences into --cache-dir (several can run at once)")
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--graph", default="hgcn_graph", help="arm C-att: vocabulary with the attention track network")
-    ap.add_argument("--graph-mean", default="hgcn_graph_mean",
-                    help="arm C: vocabulary with the mean-aggregation track network")
+    ap.add_argument("--record", metavar="NAME", default=None, help="write bench/results/NAME.json (bench/figures.py)")
     args = ap.parse_args(argv)
+    load_start = os.getloadavg()[0]
+    faiss.omp_set_num_threads(args.threads)
     t0 = time.perf_counter()
-    gt_file = two_lap_trajectory(args.cache_dir / "two_lap_40s_wide.txt")
-    vocabs = {"kmeans": load_vocabulary("kmeans"), "hgcn": load_vocabulary("hgcn"), "orb": load_vocabulary("orb10k"),
-              "graph": load_vocabulary(args.graph), "graph_mean": load_vocabulary(args.graph_mean)}
-    extractor = ORBExtractor()
-    window = max(1, args.min_gap // args.kf_every)  # keyframes less than min_gap frames older, and itself
-    per_seq: dict[str, dict[str, dict]] = {}
-    for seed in args.scene_seeds:
-        opts = SynthOptions(trajectory="replay", gt=str(gt_file), fps=args.fps, scene_seed=seed,
-                            noise=2.0, exposure_drift=0.1, seed=seed)
-        seq_dir = render_sequence(args.cache_dir / f"office{seed}_two_laps_wide_{args.fps:g}fps", opts,
-                                  progress=False, cache=True)
-        seq = open_sequence("tum", seq_dir)
-        frames = np.arange(0, len(seq), args.kf_every)
-        desc, uv, poses = [], [], []
-        for f in frames:
-            rec = seq[int(f)]
-            kps = extractor.extract(rec.image)
-            desc.append(kps.desc)
-            uv.append(np.asarray(kps.uv, np.float32))
-            poses.append(rec.T_wc)
-        gt = loop_truth(np.stack(poses), args.dist, args.angle)
-        tid = build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
-        splits = np.cumsum([len(d) for d in desc])[:-1]
-        tracks = np.split(tid, splits)
-        bows: dict[str, list] = {}
-        tracked_share = []
-        for kind, arm_lone, arm_track in (("kmeans", "A0", "B0"), ("hgcn", "A1", "B0h")):
-            v = vocabs[kind]
-            x = [v.project(d) for d in desc]
-            lone = [v.words_of_points(xi) for xi in x]
-            means = causal_means(x, tracks, window)
-            bows[arm_lone] = [v.bow_from_words(w) for w in lone]
-            bows[arm_track] = []
-            for w, (rows, m) in zip(lone, means):
-                w = w.copy()
-                if len(rows):
-                    w[rows] = v.words_of_points(m)
-                bows[arm_track].append(v.bow_from_words(w))
-            tracked_share = [len(r) / max(len(xi), 1) for (r, _), xi in zip(means, x)]
-        for arm, graph in (("C", vocabs["graph_mean"]), ("C-att", vocabs["graph"])):
-            bows[arm] = [graph.bow_from_words(w) for w in window_words(graph, desc, tracks, window)]
-        bows["orb"] = [vocabs["orb"].bow(d) for d in desc]
-        name = f"office{seed}"
-        per_seq[name] = {arm: scores(bows[arm], frames, gt, args.min_gap) for arm in ARMS}
-        per_seq[name]["features_with_track_mean"] = float(np.mean(tracked_share))
-        line = "  ".join(f"{arm} AP {per_seq[name][arm]['AP']:.3f} R@1 {per_seq[name][arm]['recall@1']:.3f}"
-                         for arm in ARMS)
-        print(f"{name}: {len(frames)} keyframes, {100 * np.mean(tracked_share):.0f}% of features with a track "
-              f"mean; {line}", flush=True)
-    rng = np.random.default_rng(0)
-    names = list(per_seq)
-    table = {}
-    for metric in METRICS:
-        for a, b in CONTRASTS:
-            va = np.array([per_seq[n][a][metric] for n in names])
-            vb = np.array([per_seq[n][b][metric] for n in names])
-            table[f"{a}-{b} {metric}"] = contrast(va, vb, rng)
-    for key, p in zip(table, holm([c["wilcoxon_p"] for c in table.values()])):
-        table[key]["holm_p"] = p
-    print(f"\nper arm, mean over {len(names)} sequences (min over sequences .. max):")
-    for arm in ARMS:
-        for metric in METRICS:
-            vals = [per_seq[n][arm][metric] for n in names]
-            print(f"  {arm:4s} {metric:9s} {np.mean(vals):.3f} ({min(vals):.3f} .. {max(vals):.3f})")
+    if args.prepare_only:
+        extractor = ORBExtractor()
+        for seed in args.scene_seeds:
+            office_keyframes(args.cache_dir, seed, args, extractor)
+            print(f"office{seed}: rendered and described ({time.perf_counter() - t0:.0f} s)", flush=True)
+        return 0
+    args.size_arms = arms = arms_by_size(args.sizes, args.arms, args.vocab_1000 or args.cache_dir / "vocab1000")
+    per_seq: dict[str, dict] = {}
+    with multiprocessing.get_context("spawn").Pool(args.jobs, _init_worker, (args,)) as pool:
+        for name, r in pool.imap(_sequence, args.scene_seeds):
+            per_seq[name] = r
+            print(f"{name}: {r['keyframes']} keyframes, {100 * r['features_with_track']:.0f}% of features with a "
+                  f"causal track, {r['same_point_pairs']} same-point pairs", flush=True)
+            for size, size_arms in arms.items():
+                print(f"  {size:5d} " + "  ".join(f"{a} {r[f'{size} {a}']['AP']:.3f}/{r[f'{size} {a}']['recall@1']:.3f}"
+                                                 for a in size_arms) + "   (AP/R@1)", flush=True)
+    means, table = summarise(per_seq, arms)
+    print(f"\nper arm, mean over {len(per_seq)} sequences: AP, recall@1, recall@100%P, same-point word "
+          f"repeatability, effective words (exp entropy)")
+    for key, m in means.items():
+        print(f"  {key:10s} AP {m['AP']:.3f}  R@1 {m['recall@1']:.3f}  R@100P {m['recall@P100']:.3f}  "
+              f"repeat {m['repeatability']:.3f}  eff. words {m['effective_words']:.0f}")
     print("\npaired contrasts over sequences: mean difference [bootstrap 95% CI], wins/losses, Wilcoxon p, Holm p")
     for key, c in table.items():
-        print(f"  {key:18s} {c['mean']:+.4f} [{c['ci95'][0]:+.4f}, {c['ci95'][1]:+.4f}]  {c['wins']}/{c['losses']}  "
-              f"p {c['wilcoxon_p']:.3f}  Holm {c['holm_p']:.3f}")
+        print(f"  {key:22s} {c['mean']:+.4f} [{c['ci95'][0]:+.4f}, {c['ci95'][1]:+.4f}]  {c['wins']}/{c['losses']}  "
+              f"p {c['wilcoxon_p']:.4f}  Holm {c['holm_p']:.4f}")
     print(f"({time.perf_counter() - t0:.0f} s)")
     if args.json is not None:
-        args.json.write_text(json.dumps({"settings": vars(args) | {"cache_dir": str(args.cache_dir),
-                                                                    "json": str(args.json)},
-                                         "sequences": per_seq, "contrasts": table}, indent=1))
+        settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+        args.json.write_text(json.dumps({"settings": settings, "sequences": per_seq, "means": means,
+                                         "contrasts": table}, indent=1))
+    if args.record:
+        record_figures(args.record, means, table, len(per_seq), load_start)
     return 0
 
 

@@ -1,0 +1,202 @@
+"""The track-words ablation bench's arithmetic on hand-made inputs with known answers:
+Holm's adjustment, the paired contrast, the per-sequence scores, the causal track members,
+ORB-SLAM's distinctive descriptor, the track-mean words and the mechanism figures."""
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from orbslam_hgcn.vocabulary.bow import BowVector
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+@pytest.fixture(scope="module")
+def tw():
+    sys.path.insert(0, str(BENCH))
+    spec = importlib.util.spec_from_file_location("bench_track_words", BENCH / "bench_track_words.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["bench_track_words"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_holm_steps_down_monotone_and_caps(tw):
+    # sorted 0.01 x4 = 0.04, 0.03 x3 = 0.09, 0.04 x2 = 0.08 -> 0.09 (monotone), 0.5 x1 = 0.5
+    assert tw.holm([0.01, 0.04, 0.03, 0.5]) == pytest.approx([0.04, 0.09, 0.09, 0.5])
+    assert tw.holm([0.3, 0.6]) == pytest.approx([0.6, 0.6])
+    assert tw.holm([0.4, 0.9, 0.8]) == pytest.approx([1.0, 1.0, 1.0])
+
+
+def test_contrast_mean_ci_and_exact_wilcoxon(tw):
+    rng = np.random.default_rng(0)
+    c = tw.contrast(np.array([1.0, 2, 3, 4, 5]), np.zeros(5), rng)
+    assert c["mean"] == pytest.approx(3.0)
+    assert 1.0 <= c["ci95"][0] < 3.0 < c["ci95"][1] <= 5.0
+    assert c["wilcoxon_p"] == pytest.approx(2 / 32)  # all five signs positive, two-sided exact
+    assert (c["wins"], c["losses"], c["units"]) == (5, 0, 5)
+    tie = tw.contrast(np.ones(4), np.ones(4), rng)
+    assert tie["mean"] == 0.0 and tie["wilcoxon_p"] == 1.0 and tie["ci95"] == [0.0, 0.0]
+
+
+def _bow(d):
+    return BowVector.from_dict(d)
+
+
+@pytest.mark.parametrize("true_first", [True, False])
+def test_scores_of_a_hand_made_sequence(tw, true_first):
+    # Keyframes 0..3 at frames 0..3, min gap 2: keyframe 2 may match 0, keyframe 3 may match 0 or 1.
+    # Keyframe 2's best match is 0 (true); keyframe 3's best is 1 (false: its loop is 0).
+    strong, weak = (0.9, 0.6) if true_first else (0.6, 0.9)
+    bows = [_bow({0: 1.0}), _bow({1: 1.0}),
+            _bow({0: strong, 9: 1 - strong}), _bow({1: weak, 9: 1 - weak})]
+    gt = np.zeros((4, 4), bool)
+    gt[2, 0] = gt[0, 2] = gt[3, 0] = gt[0, 3] = True
+    r = tw.scores(bows, np.arange(4), gt, 2)
+    assert (r["queries"], r["with_loop"]) == (2, 2)
+    assert r["recall@1"] == pytest.approx(0.5)
+    # true detection ranked first: precision 1 at recall 0.5; ranked second: 0.5 at recall 0.5
+    assert r["AP"] == pytest.approx(0.5 if true_first else 0.25)
+    assert r["recall@P100"] == pytest.approx(0.5 if true_first else 0.0)
+
+
+def test_causal_members_stay_in_the_window(tw):
+    # track 5: kf0 f0, kf1 f2, kf2 f1; track 7: kf1 f0, kf2 f0
+    tracks = [np.array([5, -1, -1]), np.array([7, -1, 5]), np.array([7, 5, -1])]
+    out = tw.causal_members(tracks, window=2)
+    rows, off, kf, ix = out[0]
+    assert len(rows) == 0
+    rows, off, kf, ix = out[1]  # track 5 has kf0 and kf1; track 7 only kf1
+    assert rows.tolist() == [2] and kf.tolist() == [0, 1] and ix.tolist() == [0, 2]
+    rows, off, kf, ix = out[2]  # window 2: kf0 is out of reach
+    assert rows.tolist() == [0, 1]
+    assert [kf[off[r]:off[r + 1]].tolist() for r in range(2)] == [[1, 2], [1, 2]]
+    assert [ix[off[r]:off[r + 1]].tolist() for r in range(2)] == [[0, 0], [2, 1]]
+
+
+def test_distinctive_is_the_least_median_member(tw):
+    centre = np.zeros(32, np.uint8)
+    others = []
+    for k in range(4):  # each 8 bits from the centre, 16 from each other
+        d = centre.copy()
+        d[k] = 0xFF
+        others.append(d)
+    desc = np.stack([others[0], centre, *others[1:]])
+    assert tw.distinctive(desc) == 1
+    assert tw.distinctive(desc[[0, 2]]) == 0  # two members: a tie, to the oldest
+
+
+class _LineVocab:
+    """Words = nearest of centres 0, 1, 2, ... on the line of the first byte's value / 100."""
+
+    def project(self, desc):
+        return desc[:, :1].astype(np.float32) / 100.0
+
+    def words_of_points(self, x):
+        return np.rint(x[:, 0]).astype(np.int32)
+
+    def transform_words(self, desc):
+        return self.words_of_points(self.project(desc))
+
+
+def _kfs(tw, desc, tracks, window):
+    n = len(desc)
+    return tw.Keyframes("t", np.arange(n), desc, [np.zeros((len(d), 2)) for d in desc], tracks, window,
+                        np.zeros((n, n), bool), np.zeros((n, 3)), [np.zeros((len(d), 3)) for d in desc])
+
+
+def test_track_mean_and_distinctive_words(tw):
+    d = lambda *v: np.array([[x] + [0] * 31 for x in v], np.uint8)  # noqa: E731
+    desc = [d(40, 250), d(80, 10), d(90, 120)]  # lone words 0, 2 / 1, 0 / 1, 1
+    tracks = [np.array([3, -1]), np.array([3, -1]), np.array([3, -1])]
+    kfs = _kfs(tw, desc, tracks, window=3)
+    mean = tw.track_mean_words(_LineVocab(), kfs)
+    # means: kf1 (40 + 80) / 2 = 60 -> 1; kf2 (40 + 80 + 90) / 3 = 70 -> 1; kf0 alone keeps 0
+    assert [w.tolist() for w in mean] == [[0, 2], [1, 0], [1, 1]]
+    dist = tw.distinctive_words(_LineVocab(), _kfs(tw, desc, tracks, window=2))
+    # window 2: kf1's members (40, 80) tie -> 40 (word 0); kf2's (80, 90) tie -> 80 (word 1)
+    assert [w.tolist() for w in dist] == [[0, 2], [0, 0], [1, 1]]
+
+
+def test_effective_size_and_repeatability(tw):
+    assert tw.effective_size([np.array([0, 1]), np.array([2, 3])]) == pytest.approx(4.0)
+    p = np.array([0.75, 0.25])
+    assert tw.effective_size([np.array([5, 5, 5, 9])]) == pytest.approx(math.exp(-(p * np.log(p)).sum()))
+    words = [np.array([1, 2, 3]), np.array([1, 7, 3])]
+    pairs = [(1, 0, np.array([0, 1]), np.array([0, 1])), (1, 0, np.array([2]), np.array([2]))]
+    assert tw.repeatability(words, pairs) == pytest.approx(2 / 3)
+    assert math.isnan(tw.repeatability(words, []))
+
+
+def test_same_points_mutual_within_tolerance(tw):
+    nan = np.nan
+    kfs = _kfs(tw, [np.zeros((3, 32), np.uint8)] * 2, [np.full(3, -1)] * 2, 1)
+    kfs.frames = np.array([0, 10])
+    kfs.gt = np.array([[False, True], [True, False]])
+    kfs.points = [np.array([[1.005, 0, 0], [0, 0, 0.02], [5, 5, 5]]),
+                  np.array([[0, 0, 0], [1, 0, 0], [nan, nan, nan]])]
+    (i, j, a, b), = tw.same_points(kfs, min_gap=5, tol=0.01)
+    assert (i, j) == (1, 0)
+    assert a.tolist() == [1] and b.tolist() == [0]  # (1, 0, 0) ~ (1.005, 0, 0); (0, 0, 0.02) too far
+    assert tw.same_points(kfs, min_gap=11, tol=0.01) == []  # no older keyframe
+
+
+def test_summary_leaves_out_contrasts_of_missing_arms(tw):
+    rng = np.random.default_rng(1)
+    per_seq = {}
+    for n in range(6):
+        per_seq[f"s{n}"] = {f"8000 {a}": {"AP": rng.random(), "recall@1": rng.random(), "recall@P100": 0.1,
+                                          "repeatability": 0.2, "effective_words": 10.0} for a in ("A0", "B0")}
+    means, table = tw.summarise(per_seq, {8000: ["A0", "B0"]})
+    assert set(table) == {"8000 B0-A0 AP", "8000 B0-A0 recall@1"}
+    d = [per_seq[n]["8000 B0"]["AP"] - per_seq[n]["8000 A0"]["AP"] for n in per_seq]
+    assert table["8000 B0-A0 AP"]["mean"] == pytest.approx(np.mean(d))
+    ps = [c["wilcoxon_p"] for c in table.values()]
+    assert [c["holm_p"] for c in table.values()] == pytest.approx(tw.holm(ps))
+    assert means["8000 A0"]["AP"] == pytest.approx(np.mean([per_seq[n]["8000 A0"]["AP"] for n in per_seq]))
+
+
+def test_scores_agree_with_the_keyframe_database(tw):
+    from orbslam_hgcn.map.database import KeyframeDatabase
+
+    rng = np.random.default_rng(4)
+    bows = []
+    for _ in range(40):
+        words = np.unique(rng.integers(0, 60, rng.integers(1, 12)))
+        w = rng.random(len(words))
+        bows.append(BowVector(words, w / w.sum()))
+    frames = np.arange(40) * 3
+    gt = rng.random((40, 40)) < 0.3
+    got = tw.scores(bows, frames, gt, 30)
+    # reference: the database's own query, keyframe by keyframe
+    db, added, s, correct, eligible = KeyframeDatabase(), 0, [], [], []
+    for i in range(40):
+        while frames[added] <= frames[i] - 30:
+            db.add(added, bows[added])
+            added += 1
+        if added == 0:
+            continue
+        res = db.query(bows[i], max_results=1)
+        s.append(res[0][1] if res else 0.0)
+        correct.append(bool(res) and bool(gt[i, res[0][0]]))
+        eligible.append(bool(gt[i, :added].any()))
+    assert got["queries"] == len(s) and got["with_loop"] == sum(eligible)
+    assert got["recall@1"] == pytest.approx(sum(correct) / sum(eligible))
+    assert 0 < got["recall@1"] < 1
+
+
+def test_recorded_figures(tw, monkeypatch):
+    got = {}
+    monkeypatch.setattr(tw.figures, "record", lambda name, title, figs, **kw: got.update(name=name, figs=figs, **kw))
+    means = {"8000 A0": {"AP": 0.8123, "recall@1": 0.9, "recall@P100": 0.25, "repeatability": 0.07,
+                         "effective_words": 7275.4}}
+    table = {"8000 B0-A0 AP": {"mean": -0.0212, "ci95": [-0.04, 0.001], "wins": 3, "losses": 9, "holm_p": 0.0312}}
+    tw.record_figures("track_words", means, table, 12, 1.5)
+    assert got["name"] == "track_words" and got["load_start"] == 1.5
+    assert got["figs"] == [("8000 A0 AP / R@1 / R@100P / repeat. / eff. words", "0.812 / 0.900 / 0.250 / 0.070 / 7275"),
+                           ("8000 B0-A0 AP", "-0.021 [-0.040, +0.001], 3/9, Holm p 0.0312")]
+    assert got["bench_file"].endswith("bench_track_words.py")
