@@ -403,7 +403,7 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--vocab", default=None, metavar="orb|hgcn|kmeans|orb10k|FILE|none",
                    help="visual vocabulary: a shipped one (orb, hgcn, kmeans, orb10k, hgcn_graph, hgcn_graph_mean), "
                    "a vocabulary file, or none "
-                   "(default hgcn; needed for loop closing and relocalisation)")
+                   "(default kmeans, the arm that won the vocabulary ablation; needed for loop closing and relocalisation)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
     p.add_argument("--on-bad-frame", choices=("skip", "stop"), default="skip",
                    help="a frame whose image cannot be read (missing, empty, truncated, corrupt, wrong size): "

@@ -392,7 +392,7 @@ class VocabularyConfig:
     2015, sections III-E and VI: DBoW2 vectors, FeatureVector 4 levels above the words, loop
     candidates sharing > 0.8 x the most common words, kept above 0.75 x the best group score)."""
 
-    kind: str = "hgcn"  # "hgcn" (the paper's vocabulary), "orb" (DBoW2 tree) or "kmeans" (flat k-means)
+    kind: str = "kmeans"  # "kmeans" (flat k-means, the default run vocabulary), "hgcn" (the paper's) or "orb" (DBoW2 tree)
     path: str = ""  # vocabulary file; "" = the shipped default of `kind`
     levels_up: int = 4  # FeatureVector nodes this many levels above the words (HGCN: coarse nodes)
     min_common_words_ratio: float = 0.8  # candidates share more than this x the most common words

@@ -100,7 +100,7 @@ KITTI_60_ATE_M = 0.27
 def test_short_real_kitti_run_as_a_user_runs_it(kitti_sample, tmp_path, capsys):
     """The first 60 KITTI frames (52 m) through ``orbslam-hgcn run SEQ --out OUT``, first with
     the command's defaults (stages in worker threads, frames taken at the camera's 10 Hz,
-    loop closing on with the shipped HGCN vocabulary), then with ``--sequential``; KITTI's
+    loop closing on with the default (k-means) vocabulary), then with ``--sequential``; KITTI's
     settings are picked from calib.txt both times, and the ATE printed is stats.json's.
 
     A paced threaded run drops the frames it falls behind on, so how many it tracks depends
@@ -115,7 +115,7 @@ def test_short_real_kitti_run_as_a_user_runs_it(kitti_sample, tmp_path, capsys):
     s = json.loads((out / "stats.json").read_text())
     assert s["threads"]["sequential"] is False and s["threads"]["speed"] == 1.0 and s["complete"] is True
     assert s["settings"]["dataset"] == "kitti_00-02" and s["settings"]["orb_features"] == 2000
-    assert "HGCNVocabulary" in s["vocabulary"] and "loops" in s["loop_closing"]
+    assert "KMeansVocabulary" in s["vocabulary"] and "loops" in s["loop_closing"]
     f = s["frames"]
     assert f["frames"] == 60 == sum(f[k] for k in ("tracked", "lost", "not_initialized", "reset", "dropped",
                                                     "unreadable", "other_maps"))
@@ -129,7 +129,7 @@ def test_short_real_kitti_run_as_a_user_runs_it(kitti_sample, tmp_path, capsys):
                  "--sequential"]) == 0
     printed = capsys.readouterr().out
     s = json.loads((out / "stats.json").read_text())
-    assert s["settings"]["dataset"] == "kitti_00-02" and "HGCNVocabulary" in s["vocabulary"]
+    assert s["settings"]["dataset"] == "kitti_00-02" and "KMeansVocabulary" in s["vocabulary"]
     init = [e["frame"] for e in s["events"] if e["event"] == "initialized"]
     assert init and init[0] <= 2
     assert s["frames"]["tracked"] == 60 and s["map_resets"] == 0

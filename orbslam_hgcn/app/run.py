@@ -37,6 +37,12 @@ from orbslam_hgcn.viz.sinks import parse_rerun_arg
 
 log = logging.getLogger(__name__)
 
+# The vocabulary of a run without --vocab: the arm that won the place-recognition ablation
+# (bench/bench_track_words.py; README "Shipped vocabularies"): k-means words of lone
+# descriptors. Neither the shipped HGCN (its network is in effect the identity) nor the
+# track network over map points beat it there.
+DEFAULT_VOCAB = "kmeans"
+
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 
 def _first_line(exc: BaseException) -> str:
@@ -97,12 +103,12 @@ def trajectory_ate(gt: Trajectory, est: Trajectory) -> dict[str, Any]:
 
 
 def open_vocabulary(vocab: str | None, loop_closing: bool) -> Any:
-    """The vocabulary of a run: ``vocab`` is ``orb``, ``hgcn`` (the shipped defaults), a
-    vocabulary file, or ``none``; None means the default HGCN one. Without loop closing a
+    """The vocabulary of a run: ``vocab`` is a shipped name (``orb``, ``hgcn``, ``kmeans``, ...),
+    a vocabulary file, or ``none``; None means :data:`DEFAULT_VOCAB`. Without loop closing a
     missing default only costs relocalisation (a warning); otherwise it is an error."""
     from orbslam_hgcn.vocabulary import load_vocabulary
 
-    name = vocab or "hgcn"
+    name = vocab or DEFAULT_VOCAB
     if name == "none":
         if loop_closing:
             raise OrbslamError("loop closing needs a vocabulary: use --vocab orb|hgcn|kmeans|orb10k|FILE, or --no-loop")
