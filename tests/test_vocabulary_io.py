@@ -267,3 +267,17 @@ def test_image_sources(tmp_path):
     empty.mkdir()
     with pytest.raises(DatasetError, match="no images found"):
         open_image_source(empty)
+
+
+def test_shipped_flat_vocabularies_name_their_arm_and_the_run_default_is_the_winner():
+    """The shipped k-means and HGCN files name their arm of the keyframe-word ablation and its
+    figures; ``run`` without --vocab opens the arm-A0 file, the one no other arm beat."""
+    from orbslam_hgcn.app.run import DEFAULT_VOCAB, open_vocabulary
+
+    arms = {name: load_vocabulary(name).metadata for name in ("kmeans", "hgcn")}
+    assert arms["kmeans"].params["arm"] == "A0" and arms["hgcn"].params["arm"] == "A1"
+    for meta in arms.values():
+        assert "bench_track_words.py" in meta.stats["ablation"] and "A0 k-means lone" in meta.stats["ablation"]
+    assert arms["hgcn"].stats["hgcn_best_epoch"] == 0 and "identity" in arms["hgcn"].stats["role"]
+    default = open_vocabulary(None, loop_closing=True)
+    assert DEFAULT_VOCAB == "kmeans" and default.metadata.params["arm"] == "A0"
