@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 
 MIN_NORM = 1e-15
 BALL_EPS = 4e-3  # float32 projection margin, as hyperbolic.BALL_EPS
+ARTANH_CLIP = 1e-7  # float32 margin of artanh's argument from +-1
 ACTIVATION_CODES = {"relu": 0, "leaky_relu": 1, "elu": 2, "tanh": 3}  # of the compiled kernel
 ACTIVATIONS = {
     "relu": lambda v: np.maximum(v, 0.0),
@@ -37,39 +38,44 @@ ACTIVATIONS = {
 }
 
 
-def _norm(x: np.ndarray) -> np.ndarray:
+def norm(x: np.ndarray) -> np.ndarray:
+    """(..., 1) norms of the rows of x (..., d), at least MIN_NORM."""
     return np.maximum(np.sqrt(np.einsum("...i,...i->...", x, x))[..., None], MIN_NORM)
 
 
-def artanh(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, -1 + 1e-7, 1 - 1e-7)
+def artanh(x: np.ndarray, clip: float = ARTANH_CLIP) -> np.ndarray:
+    """artanh of x clipped to [-1 + clip, 1 - clip]."""
+    x = np.clip(x, -1 + clip, 1 - clip)
     return 0.5 * (np.log1p(x) - np.log1p(-x))
 
 
 R_MAX_UNIT = float(artanh(np.float32(1 - BALL_EPS)))  # tangent radius of the projection ball at c = 1
 
 
-def proj(x: np.ndarray, c: float) -> np.ndarray:
-    maxnorm = (1 - BALL_EPS) / np.sqrt(c)
-    n = _norm(x)
+def proj(x: np.ndarray, c: float, eps: float = BALL_EPS) -> np.ndarray:
+    """x with rows beyond the radius (1 - eps) / sqrt(c) scaled back onto it."""
+    maxnorm = (1 - eps) / np.sqrt(c)
+    n = norm(x)
     return np.where(n > maxnorm, x / n * maxnorm, x)
 
 
-def clip_tangent(v: np.ndarray, c: float) -> np.ndarray:
-    r_max = artanh(np.float32(1 - BALL_EPS)) / np.sqrt(c)
-    return v * np.minimum(r_max / _norm(v), 1.0)
+def clip_tangent(v: np.ndarray, c: float, r_max_unit: float = R_MAX_UNIT) -> np.ndarray:
+    """Tangent vectors v with rows longer than r_max_unit / sqrt(c) (the tangent radius of
+    the projection ball; :data:`R_MAX_UNIT` for the default margin) scaled back to it."""
+    r_max = r_max_unit / np.sqrt(c)
+    return v * np.minimum(r_max / norm(v), 1.0)
 
 
 def expmap0(u: np.ndarray, c: float) -> np.ndarray:
     sc = np.sqrt(c)
-    n = _norm(u)
+    n = norm(u)
     return np.tanh(sc * n) * u / (sc * n)
 
 
-def logmap0(y: np.ndarray, c: float) -> np.ndarray:
+def logmap0(y: np.ndarray, c: float, clip: float = ARTANH_CLIP) -> np.ndarray:
     sc = np.sqrt(c)
-    n = _norm(y)
-    return artanh(sc * n) * y / (sc * n)
+    n = norm(y)
+    return artanh(sc * n, clip) * y / (sc * n)
 
 
 def mobius_add(x: np.ndarray, y: np.ndarray, c: float) -> np.ndarray:
