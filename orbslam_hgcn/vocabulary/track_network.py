@@ -36,10 +36,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from orbslam_hgcn.vocabulary.ball import MIN_NORM, artanh, clip_tangent, expmap0, logmap0, mobius_add, norm, proj
 from orbslam_hgcn.vocabulary.bow import BowVector
 
-MIN_NORM = 1e-15
+# The Poincare-ball operations are those of :mod:`.ball`, in float64 with these margins.
 BALL_EPS = 1e-5  # float64 projection margin, as training.hyperbolic.BALL_EPS[float64]
+ARTANH_CLIP = 1e-15  # float64 margin of artanh's argument from +-1
+R_MAX_UNIT = float(artanh(np.float64(1 - BALL_EPS), ARTANH_CLIP))  # tangent radius of the projection ball at c = 1
 AGGREGATIONS = ("attention", "mean")
 HAM_SCALE = 32.0  # Hamming distances enter the attention divided by this
 POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
@@ -51,58 +54,20 @@ def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return POPCOUNT[np.bitwise_xor(a, b)].sum(-1, dtype=np.int64).astype(np.float64)
 
 
-def _norm(x: np.ndarray) -> np.ndarray:
-    return np.maximum(np.sqrt(np.einsum("...i,...i->...", x, x))[..., None], MIN_NORM)
-
-
-def _artanh(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, -1 + 1e-15, 1 - 1e-15)
-    return 0.5 * (np.log1p(x) - np.log1p(-x))
-
-
-def _proj(x: np.ndarray, c: float) -> np.ndarray:
-    maxnorm = (1 - BALL_EPS) / np.sqrt(c)
-    n = _norm(x)
-    return np.where(n > maxnorm, x / n * maxnorm, x)
-
-
-def _clip_tangent(v: np.ndarray, c: float) -> np.ndarray:
-    r_max = _artanh(np.float64(1 - BALL_EPS)) / np.sqrt(c)
-    return v * np.minimum(r_max / _norm(v), 1.0)
-
-
-def _mobius_add(x: np.ndarray, y: np.ndarray, c: float) -> np.ndarray:
-    x2 = np.einsum("...i,...i->...", x, x)[..., None]
-    y2 = np.einsum("...i,...i->...", y, y)[..., None]
-    xy = np.einsum("...i,...i->...", x, y)[..., None]
-    num = (1 + 2 * c * xy + c * y2) * x + (1 - c * x2) * y
-    return num / np.maximum(1 + 2 * c * xy + c * c * x2 * y2, MIN_NORM)
-
-
-def _expmap0(u: np.ndarray, c: float) -> np.ndarray:
-    sc, n = np.sqrt(c), _norm(u)
-    return np.tanh(sc * n) * u / (sc * n)
-
-
-def _logmap0(y: np.ndarray, c: float) -> np.ndarray:
-    sc, n = np.sqrt(c), _norm(y)
-    return _artanh(sc * n) * y / (sc * n)
-
-
 def _lambda(x: np.ndarray, c: float) -> np.ndarray:
     return 2.0 / np.maximum(1.0 - c * np.einsum("...i,...i->...", x, x)[..., None], MIN_NORM)
 
 
 def _expmap(x: np.ndarray, u: np.ndarray, c: float) -> np.ndarray:
-    sc, n = np.sqrt(c), _norm(u)
-    return _mobius_add(x, np.tanh(sc * _lambda(x, c) * n / 2) * u / (sc * n), c)
+    sc, n = np.sqrt(c), norm(u)
+    return mobius_add(x, np.tanh(sc * _lambda(x, c) * n / 2) * u / (sc * n), c)
 
 
 def _logmap(x: np.ndarray, y: np.ndarray, c: float) -> np.ndarray:
     sc = np.sqrt(c)
-    w = _mobius_add(-x, y, c)
-    wn = _norm(w)
-    return 2 / (sc * _lambda(x, c)) * _artanh(sc * wn) * w / wn
+    w = mobius_add(-x, y, c)
+    wn = norm(w)
+    return 2 / (sc * _lambda(x, c)) * artanh(sc * wn, ARTANH_CLIP) * w / wn
 
 
 @dataclass
@@ -154,10 +119,10 @@ class TrackNetwork:
         x = np.asarray(x, np.float64).reshape(-1, self.dim)
         mates = np.asarray(mates, np.float64).reshape(len(x), -1, self.dim)
         mask = np.asarray(mask, bool).reshape(len(x), -1)
-        u = _clip_tangent(x / s, c)
-        um = _clip_tangent(mates / s, c)
-        p = _proj(_expmap0(u, c), c)
-        q = _proj(_expmap0(um @ self.weight.T + self.bias, c), c)
+        u = clip_tangent(x / s, c, R_MAX_UNIT)
+        um = clip_tangent(mates / s, c, R_MAX_UNIT)
+        p = proj(expmap0(u, c), c, BALL_EPS)
+        q = proj(expmap0(um @ self.weight.T + self.bias, c), c, BALL_EPS)
         t = _logmap(p[:, None, :], q, c)  # (N, W, d)
         e = np.zeros((len(x), 1 + mask.shape[1]))
         if self.aggregation == "attention":
@@ -171,8 +136,8 @@ class TrackNetwork:
         w = np.exp(e)
         alpha = w / w.sum(1, keepdims=True)
         z = self.gate * np.einsum("nw,nwd->nd", alpha[:, 1:], t)
-        o = _proj(_expmap(p, z, c), c)
-        y = _logmap0(o, c) * s
+        o = proj(_expmap(p, z, c), c, BALL_EPS)
+        y = logmap0(o, c, ARTANH_CLIP) * s
         none = ~mask.any(1)
         y[none] = x[none]
         return y.astype(np.float32)
