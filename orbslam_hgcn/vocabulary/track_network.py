@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from orbslam_hgcn.vocabulary.ball import MIN_NORM, artanh, clip_tangent, expmap0, logmap0, mobius_add, norm, proj
-from orbslam_hgcn.vocabulary.bow import BowVector
+from orbslam_hgcn.vocabulary.track_words import TrackWordsBase
 
 # The Poincare-ball operations are those of :mod:`.ball`, in float64 with these margins.
 BALL_EPS = 1e-5  # float64 projection margin, as training.hyperbolic.BALL_EPS[float64]
@@ -160,10 +160,9 @@ class TrackNetwork:
                    sc[0], sc[1], sc[2], sc[3], int(sc[4]), str(a["tracknet_aggregation"]))
 
 
-class TrackNetworkWords:
+class TrackNetworkWords(TrackWordsBase):
     """Causal track-network words of keyframes over a flat vocabulary holding a
-    :class:`TrackNetwork` (``vocabulary.track_network``); the interface of
-    :class:`~orbslam_hgcn.vocabulary.track_words.TrackWords`.
+    :class:`TrackNetwork` (``vocabulary.track_network``).
 
     Per map point it keeps the kf ids, reduced descriptors and binary descriptors of at
     most ``window + 1`` of its observations, the most recent ones (a keyframe needs
@@ -174,21 +173,9 @@ class TrackNetworkWords:
         net = getattr(vocabulary, "track_network", None)
         if net is None or not hasattr(vocabulary, "words_of_points"):
             raise ValueError("track-network words need a vocabulary holding a track network (e.g. 'hgcn_graph')")
-        self.vocabulary = vocabulary
         self.network: TrackNetwork = net
         self._obs: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}  # point -> kf -> (x, desc)
-
-    def __len__(self) -> int:
-        return len(self._obs)
-
-    def points(self) -> list[int]:
-        """Ids of the points with cached observations."""
-        return list(self._obs)
-
-    def forget(self, pids: Sequence[int]) -> None:
-        """Drop the cached observations of points (bad or replaced ones)."""
-        for p in pids:
-            self._obs.pop(int(p), None)
+        super().__init__(vocabulary, self._obs)
 
     def inputs(
         self,
@@ -259,29 +246,12 @@ class TrackNetworkWords:
             for (pid, _), xv, dv in zip(items, xs, ds):
                 self._obs[pid][j] = (np.asarray(xv, np.float32), np.asarray(dv, np.uint8))
 
-    def keyframe_bow(
-        self,
-        kf_id: int,
-        desc: np.ndarray,
-        lone_words: np.ndarray,
-        idx: np.ndarray,
-        pids: np.ndarray,
-        observations: Sequence[dict[int, int]],
-        descriptors_of: Callable[[int], np.ndarray],
-        x: np.ndarray | None = None,
-    ) -> tuple[BowVector, np.ndarray]:
-        """The keyframe's BoW vector from track-network words, and its (N,) int32 words
-        (arguments as :meth:`~orbslam_hgcn.vocabulary.track_words.TrackWords.keyframe_bow`)."""
-        v = self.vocabulary
-        if x is None:
-            x = v.project(desc)
-        idx = np.asarray(idx)
-        rows, mates, mask, ham = self.inputs(kf_id, x, desc, idx, np.asarray(pids), observations, descriptors_of)
-        words = np.array(lone_words, dtype=np.int32, copy=True)
-        if len(rows):
-            feats = idx[rows]
-            words[feats] = v.words_of_points(self.network.embed(x[feats], mates, mask, ham))
-        return v.bow_from_words(words), words
+    def track_points(self, kf_id, x, desc, idx, pids, observations, descriptors_of):
+        """The network's outputs for the features with at least one earlier mate (:meth:`inputs`)."""
+        rows, mates, mask, ham = self.inputs(kf_id, x, desc, idx, pids, observations, descriptors_of)
+        if not len(rows):
+            return rows, np.zeros((0, x.shape[1]), np.float32)
+        return rows, self.network.embed(x[idx[rows]], mates, mask, ham)
 
 
 def window_inputs(x: list[np.ndarray], desc: list[np.ndarray], tracks: list[np.ndarray], window: int,

@@ -30,7 +30,79 @@ import numpy as np
 from orbslam_hgcn.vocabulary.bow import BowVector
 
 
-class TrackWords:
+class TrackWordsBase:
+    """What the keyframe words from map-point tracks share: per-point state kept between
+    keyframes in dicts keyed by point id (``caches``; the first holds every cached point),
+    and the keyframe's BoW vector from the points that :meth:`track_points` gives its
+    tracked features.
+
+    vocabulary: has ``project(desc) -> (N, d)``, ``words_of_points(x) -> (N,) int32`` and
+    ``bow_from_words(words)``.
+    """
+
+    def __init__(self, vocabulary, *caches: dict) -> None:
+        self.vocabulary = vocabulary
+        self._caches = caches
+
+    def __len__(self) -> int:
+        return len(self._caches[0])
+
+    def points(self) -> list[int]:
+        """Ids of the points with cached state."""
+        return list(self._caches[0])
+
+    def forget(self, pids: Sequence[int]) -> None:
+        """Drop the cached state of points (bad or replaced ones)."""
+        for p in pids:
+            for cache in self._caches:
+                cache.pop(int(p), None)
+
+    def track_points(
+        self,
+        kf_id: int,
+        x: np.ndarray,
+        desc: np.ndarray,
+        idx: np.ndarray,
+        pids: np.ndarray,
+        observations: Sequence[dict[int, int]],
+        descriptors_of: Callable[[int], np.ndarray],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """((K,) indices into idx of the features whose words come from their tracks, (K, d)
+        float32 the PCA-space points whose words they get); arguments as for
+        :meth:`keyframe_bow`, x given."""
+        raise NotImplementedError
+
+    def keyframe_bow(
+        self,
+        kf_id: int,
+        desc: np.ndarray,
+        lone_words: np.ndarray,
+        idx: np.ndarray,
+        pids: np.ndarray,
+        observations: Sequence[dict[int, int]],
+        descriptors_of: Callable[[int], np.ndarray],
+        x: np.ndarray | None = None,
+    ) -> tuple[BowVector, np.ndarray]:
+        """The keyframe's BoW vector from track words, and its (N,) int32 words.
+
+        desc: (N, B) the keyframe's descriptors; lone_words: (N,) their own words (kept by
+        features without a track); x: their reduced descriptors when already at hand. idx:
+        (M,) its features linked to map points pids (M,), whose observations ({kf id:
+        feature index}) are ``observations``. descriptors_of: kf id -> that keyframe's
+        (N', B) descriptors.
+        """
+        v = self.vocabulary
+        if x is None:
+            x = v.project(desc)
+        idx = np.asarray(idx)
+        rows, points = self.track_points(kf_id, x, desc, idx, np.asarray(pids), observations, descriptors_of)
+        words = np.array(lone_words, dtype=np.int32, copy=True)
+        if len(rows):
+            words[idx[rows]] = v.words_of_points(points)
+        return v.bow_from_words(words), words
+
+
+class TrackWords(TrackWordsBase):
     """Causal track-mean words over a flat (PCA-space) vocabulary (``kmeans`` or ``hgcn``).
 
     vocabulary: has ``project(desc) -> (N, d)`` and ``words_of_points(x) -> (N,) int32``.
@@ -39,22 +111,9 @@ class TrackWords:
     def __init__(self, vocabulary) -> None:
         if not hasattr(vocabulary, "words_of_points"):
             raise ValueError(f"track words need a flat vocabulary (kmeans or hgcn), not {vocabulary.kind!r}")
-        self.vocabulary = vocabulary
         self._sum: dict[int, np.ndarray] = {}  # point id -> (d,) float64 sum of reduced descriptors
         self._seen: dict[int, set[int]] = {}  # point id -> keyframes already summed
-
-    def __len__(self) -> int:
-        return len(self._sum)
-
-    def points(self) -> list[int]:
-        """Ids of the points with a cached sum."""
-        return list(self._sum)
-
-    def forget(self, pids: Sequence[int]) -> None:
-        """Drop the cached sums of points (bad or replaced ones)."""
-        for p in pids:
-            self._sum.pop(int(p), None)
-            self._seen.pop(int(p), None)
+        super().__init__(vocabulary, self._sum, self._seen)
 
     def means(
         self,
@@ -126,28 +185,6 @@ class TrackWords:
             else:
                 s += v
 
-    def keyframe_bow(
-        self,
-        kf_id: int,
-        desc: np.ndarray,
-        lone_words: np.ndarray,
-        idx: np.ndarray,
-        pids: np.ndarray,
-        observations: Sequence[dict[int, int]],
-        descriptors_of: Callable[[int], np.ndarray],
-        x: np.ndarray | None = None,
-    ) -> tuple[BowVector, np.ndarray]:
-        """The keyframe's BoW vector from track words, and its (N,) int32 words.
-
-        desc: (N, B) the keyframe's descriptors; lone_words: (N,) their own words (kept by
-        features without a track); x: their reduced descriptors when already at hand. The
-        other arguments as for :meth:`means`.
-        """
-        v = self.vocabulary
-        if x is None:
-            x = v.project(desc)
-        rows, means = self.means(kf_id, x, np.asarray(idx), np.asarray(pids), observations, descriptors_of)
-        words = np.array(lone_words, dtype=np.int32, copy=True)
-        if len(rows):
-            words[np.asarray(idx)[rows]] = v.words_of_points(means)
-        return v.bow_from_words(words), words
+    def track_points(self, kf_id, x, desc, idx, pids, observations, descriptors_of):
+        """The causal track means of the tracked features (:meth:`means`)."""
+        return self.means(kf_id, x, idx, pids, observations, descriptors_of)
