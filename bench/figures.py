@@ -84,7 +84,8 @@ def record(name: str, title: str, figures: list[tuple[str, str]], *, bench_file:
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps(out, indent=2) + "\n")
-    print(f"figures: recorded {path.relative_to(REPO)} at {commit}")
+    shown = path.relative_to(REPO) if path.is_relative_to(REPO) else path.resolve()  # a results folder elsewhere
+    print(f"figures: recorded {shown} at {commit}")
     return path
 
 

@@ -3,6 +3,7 @@ them (bench/figures.py): the quoted block must be what the files give, and no fi
 older than the code it measures."""
 
 import importlib.util
+import json
 import subprocess
 from pathlib import Path
 
@@ -52,3 +53,22 @@ def test_the_check_fails_on_a_changed_figure_a_stale_commit_and_an_unknown_commi
     assert len(found) == 1 and "not in this repository's history" in found[0]
     with pytest.raises(ValueError):
         fig.readme_block("no markers here")
+
+
+def test_record_prints_the_results_path_inside_or_outside_the_repository(tmp_path, monkeypatch, capsys):
+    fig = _figures()
+    repo = tmp_path / "repo"
+    monkeypatch.setattr(fig, "REPO", repo)
+    # A clean tree at commit abc1234, whatever this checkout holds.
+    monkeypatch.setattr(fig, "_git", lambda *args: subprocess.CompletedProcess(
+        args, 0, "abc1234\n" if args[0] == "rev-parse" else "", ""))
+    bench = str(repo / "bench" / "bench_x.py")
+    for results, shown in ((repo / "bench" / "results", "bench/results/x.json"),
+                           (tmp_path / "elsewhere", str((tmp_path / "elsewhere" / "x.json").resolve()))):
+        monkeypatch.setattr(fig, "RESULTS", results)
+        path = fig.record("x", "X", [("ATE", "1.00 cm")], bench_file=bench, load_start=0.5)
+        assert path == results / "x.json"
+        written = json.loads(path.read_text())
+        assert written["figures"] == [["ATE", "1.00 cm"]] and written["commit"] == "abc1234"
+        assert written["measures"] == ["bench/bench_x.py", "orbslam_hgcn"]
+        assert capsys.readouterr().out == f"figures: recorded {shown} at abc1234\n"
