@@ -25,7 +25,7 @@ from typing import Any
 
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from orbslam_hgcn.config import dataset_settings, load_camera, load_yaml, resolve_config
+from orbslam_hgcn.config import VocabularyConfig, dataset_settings, load_camera, load_yaml, resolve_config
 from orbslam_hgcn.datasets import detect_kind, open_sequence
 from orbslam_hgcn.errors import FrameError, OrbslamError, StageError, VocabularyError
 from orbslam_hgcn.geometry.camera import PinholeCamera
@@ -40,8 +40,8 @@ log = logging.getLogger(__name__)
 # The vocabulary of a run without --vocab: the arm that won the place-recognition ablation
 # (bench/bench_track_words.py; README "Shipped vocabularies"): k-means words of lone
 # descriptors. Neither the shipped HGCN (its network is in effect the identity) nor the
-# track network over map points beat it there.
-DEFAULT_VOCAB = "kmeans"
+# track network over map points beat it there. The vocabulary config's default kind.
+DEFAULT_VOCAB = VocabularyConfig.kind
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 
