@@ -76,11 +76,14 @@ def test_track_words_need_a_flat_vocabulary():
         TrackWords(load_vocabulary("orb"))
 
 
-@pytest.fixture(scope="module")
-def track_mapped(synth_replay_100, tmp_path_factory):
+@pytest.fixture(scope="module", params=[("hgcn", "mean"), ("hgcn_graph", "network")], ids=["means", "network"])
+def track_mapped(request, synth_replay_100, tmp_path_factory):
+    """The replay's first 60 frames mapped with keyframe words from track means (HGCN
+    vocabulary) or from the track network, and the saved map."""
+    name, by = request.param
     seq = open_sequence("tum", synth_replay_100)
-    vocab = load_vocabulary("hgcn")
-    configs = Configs(local_mapping=dataclasses.replace(LocalMappingConfig(), track_words=True))
+    vocab = load_vocabulary(name)
+    configs = Configs(local_mapping=dataclasses.replace(LocalMappingConfig(), track_words=True, track_words_by=by))
     system = System(seq.camera, configs, vocabulary=vocab)
     system.run(seq, 60, progress=False)
     path = save_system_map(tmp_path_factory.mktemp("map") / "map.npz", system, "hgcn")
@@ -159,19 +162,3 @@ def test_track_network_words_need_a_vocabulary_with_a_network():
     configs = Configs(local_mapping=LocalMappingConfig(track_words=True, track_words_by="network"))
     with pytest.raises(ConfigError, match="hgcn_graph"):
         System(PinholeCamera(500, 500, 320, 240, 640, 480), configs, vocabulary=load_vocabulary("kmeans"))
-
-
-@pytest.fixture(scope="module")
-def network_mapped(synth_replay_100, tmp_path_factory):
-    seq = open_sequence("tum", synth_replay_100)
-    vocab = load_vocabulary("hgcn_graph")
-    configs = Configs(local_mapping=dataclasses.replace(LocalMappingConfig(), track_words=True,
-                                                        track_words_by="network"))
-    system = System(seq.camera, configs, vocabulary=vocab)
-    system.run(seq, 60, progress=False)
-    path = save_system_map(tmp_path_factory.mktemp("map") / "map.npz", system, "hgcn")
-    return seq, vocab, system, path
-
-
-def test_lone_frame_relocalises_against_track_network_words(network_mapped):
-    test_lone_frame_relocalises_against_track_words(network_mapped)
