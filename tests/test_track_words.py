@@ -46,29 +46,44 @@ def _keyframe_args(desc, obs, kf, vocab):
     return (kf, desc[kf], vocab.transform_words(desc[kf]), idx, pids, [obs[p] for p in pids], desc.__getitem__)
 
 
+def _check_causal_words(make, vocab, desc, obs, direct):
+    """Feed the keyframes in order to a cache ``make(vocab)`` and check every keyframe's
+    words against the direct computation ``direct(kf, feature, observations)`` (the word of
+    the feature's causal track; None: its lone word) and against a fresh cache that sees the
+    later keyframes' observations already linked (as a threaded run may: they are never
+    used). Returns the cache."""
+    tw = make(vocab)
+    got = {kf: tw.keyframe_bow(*_keyframe_args(desc, obs, kf, vocab))[1] for kf in range(len(desc))}
+    n_changed = 0
+    for kf in range(len(desc)):
+        args = _keyframe_args(desc, obs, kf, vocab)
+        words = args[2].copy()
+        for i, o in zip(args[3], args[5]):
+            w = direct(kf, i, o)
+            if w is not None:
+                words[i] = w
+        assert np.array_equal(got[kf], words), kf
+        n_changed += int(np.sum(words != args[2]))
+        assert np.array_equal(make(vocab).keyframe_bow(*args)[1], got[kf])
+    assert n_changed > 20  # the tracks do change words (the test can tell)
+    # The first keyframe's tracks hold only itself: its words are its lone words.
+    assert np.array_equal(got[0], vocab.transform_words(desc[0]))
+    return tw
+
+
 @pytest.mark.parametrize("which", ["kmeans", "hgcn"])
 def test_track_words_are_the_words_of_causal_means_and_never_change(which):
     vocab = vf.small_kmeans_vocab() if which == "kmeans" else vf.small_hgcn_vocab()
     desc, obs = _tracks(np.random.default_rng(3))
-    tw = TrackWords(vocab)
-    got = {kf: tw.keyframe_bow(*_keyframe_args(desc, obs, kf, vocab))[1] for kf in range(4)}
-    n_changed = 0
-    for kf in range(4):
-        # Direct computation: mean of the reduced descriptors over keyframes <= kf.
-        args = _keyframe_args(desc, obs, kf, vocab)
-        words = args[2].copy()
-        for i, o in zip(args[3], args[5]):
-            causal = [vocab.project(desc[j][[f]])[0] for j, f in o.items() if j <= kf]
-            if len(causal) >= 2:
-                words[i] = vocab.words_of_points(np.mean(causal, 0, keepdims=True).astype(np.float32))[0]
-        assert np.array_equal(got[kf], words), kf
-        n_changed += int(np.sum(words != args[2]))
-        # A fresh cache that sees the later keyframes' observations already linked (as a
-        # threaded run may) gives the same words: they are never used.
-        assert np.array_equal(TrackWords(vocab).keyframe_bow(*args)[1], got[kf])
-    assert n_changed > 20  # the tracks do change words (the test can tell)
-    # The first keyframe's tracks hold only itself: its words are its lone words.
-    assert np.array_equal(got[0], vocab.transform_words(desc[0]))
+
+    def direct(kf, i, o):
+        # The mean of the reduced descriptors over keyframes <= kf.
+        causal = [vocab.project(desc[j][[f]])[0] for j, f in o.items() if j <= kf]
+        if len(causal) >= 2:
+            return vocab.words_of_points(np.mean(causal, 0, keepdims=True).astype(np.float32))[0]
+        return None
+
+    _check_causal_words(TrackWords, vocab, desc, obs, direct)
 
 
 def test_track_words_need_a_flat_vocabulary():
@@ -123,35 +138,23 @@ def test_track_network_words_are_the_networks_words_of_causal_mates_and_never_ch
     net = vocab.track_network
     n_kf = net.window + 4  # tracks longer than the window: the cache keeps only the recent mates
     desc, obs = _tracks(np.random.default_rng(4), n_kf=n_kf)
-    tw = TrackNetworkWords(vocab)
-    got = {kf: tw.keyframe_bow(*_keyframe_args(desc, obs, kf, vocab))[1] for kf in range(n_kf)}
+
+    def direct(kf, i, o):
+        # The network on the feature and its window most recent observations in earlier keyframes.
+        older = sorted((j for j in o if j < kf), reverse=True)[: net.window]
+        if not older:
+            return None
+        mates = np.zeros((1, net.window, vocab.pca.dim), np.float32)
+        mask = np.zeros((1, net.window), bool)
+        ham = np.zeros((1, net.window))
+        for r, j in enumerate(older):
+            mates[0, r] = vocab.project(desc[j][[o[j]]])[0]
+            mask[0, r] = True
+            ham[0, r] = np.unpackbits(desc[kf][i] ^ desc[j][o[j]]).sum()
+        return vocab.words_of_points(net.embed(vocab.project(desc[kf][[i]]), mates, mask, ham))[0]
+
+    tw = _check_causal_words(TrackNetworkWords, vocab, desc, obs, direct)
     assert max(len(tw._obs[p]) for p in tw.points()) <= net.window + 1
-    n_changed = 0
-    for kf in range(n_kf):
-        # Direct computation: the network on the feature and its window most recent
-        # observations in earlier keyframes.
-        args = _keyframe_args(desc, obs, kf, vocab)
-        words = args[2].copy()
-        for i, o in zip(args[3], args[5]):
-            older = sorted((j for j in o if j < kf), reverse=True)[: net.window]
-            if not older:
-                continue
-            mates = np.zeros((1, net.window, vocab.pca.dim), np.float32)
-            mask = np.zeros((1, net.window), bool)
-            ham = np.zeros((1, net.window))
-            for r, j in enumerate(older):
-                mates[0, r] = vocab.project(desc[j][[o[j]]])[0]
-                mask[0, r] = True
-                ham[0, r] = np.unpackbits(desc[kf][i] ^ desc[j][o[j]]).sum()
-            y = net.embed(vocab.project(desc[kf][[i]]), mates, mask, ham)
-            words[i] = vocab.words_of_points(y)[0]
-        assert np.array_equal(got[kf], words), kf
-        n_changed += int(np.sum(words != args[2]))
-        # A fresh cache that sees the later keyframes' observations already linked gives
-        # the same words.
-        assert np.array_equal(TrackNetworkWords(vocab).keyframe_bow(*args)[1], got[kf])
-    assert n_changed > 20  # the network does change words (the test can tell)
-    assert np.array_equal(got[0], vocab.transform_words(desc[0]))
 
 
 def test_track_network_words_need_a_vocabulary_with_a_network():
