@@ -57,7 +57,7 @@ class ProbedSearch:
         self.dim = points.shape[1]
         centres, assign = list_kmeans(points, n_lists(len(points)), KMEANS_ITERS, seed)
         order = np.argsort(assign, kind="stable")
-        self.ids = order.astype(np.int32)  # word of each reordered point
+        self.ids = order.astype(np.int32)  # word of each reordered point, increasing within a list
         self.points = np.ascontiguousarray(points[order])
         self.scaled = -2 * self.points
         self.norms = np.einsum("wd,wd->w", self.points, self.points)
@@ -127,11 +127,13 @@ def _assign(p, centres, out):
 
 @jit
 def _select_lists(q, centres_t, sel):
-    """sel[i] = the sel.shape[1] lists whose centres are nearest to q[i] (in no order):
-    the squared distances, then the k-th smallest found by bisection on the value."""
+    """sel[i] = the sel.shape[1] lists whose centres are nearest to q[i] (in list order):
+    the squared distances, then the k-th smallest found by bisection on the value, then
+    the lists below it gathered without branches (ties at the k-th value after them)."""
     d, n = centres_t.shape
     probe = sel.shape[1]
     dc = np.empty(n, np.float32)
+    below = np.empty(n + 1, np.int32)
     for i in range(q.shape[0]):
         for c in range(n):
             dc[c] = 0
@@ -140,8 +142,12 @@ def _select_lists(q, centres_t, sel):
             for c in range(n):
                 e = qt - centres_t[t, c]
                 dc[c] += e * e
-        hi = dc.max()  # count(dc <= hi) >= probe > count(dc <= lo)
-        lo = dc.min() - np.float32(1.0)
+        hi = dc[0]  # count(dc <= hi) >= probe > count(dc <= lo)
+        lo = dc[0]
+        for c in range(n):
+            hi = max(hi, dc[c])
+            lo = min(lo, dc[c])
+        lo -= np.float32(1.0)
         if probe < n:
             for _ in range(64):
                 mid = np.float32(0.5) * (lo + hi)
@@ -149,7 +155,7 @@ def _select_lists(q, centres_t, sel):
                     break
                 cnt = 0
                 for c in range(n):
-                    cnt += dc[c] <= mid
+                    cnt += np.int32(dc[c] <= mid)
                 if cnt >= probe:
                     hi = mid
                     if cnt == probe:
@@ -157,12 +163,15 @@ def _select_lists(q, centres_t, sel):
                 else:
                     lo = mid
         m = 0
+        for c in range(n):  # fewer than probe lists lie below hi
+            below[m] = c
+            m += np.int32(dc[c] < hi)
+        for k in range(m):
+            sel[i, k] = below[k]
         for c in range(n):
-            if dc[c] < hi and m < probe:
-                sel[i, m] = c
-                m += 1
-        for c in range(n):
-            if dc[c] == hi and m < probe:
+            if m == probe:
+                break
+            if dc[c] == hi:
                 sel[i, m] = c
                 m += 1
 
@@ -171,7 +180,9 @@ def _select_lists(q, centres_t, sel):
 def _search_lists(q, sel, scaled, norms, starts, ids, out):
     """out[i] = the nearest point to q[i] among the lists sel[i], by ``|p|^2 - 2 q.p``
     (scaled: the points times -2, norms: their |p|^2): the (query, list) pairs grouped by
-    list, each list's points against all its queries at once."""
+    list, each list's points against all its queries at once. Within a list the nearest
+    point is kept by a branch-free select (the list's ids increase, so the first of equal
+    distances has the lowest id); the lists' winners then meet with ties to the lower id."""
     n, d = q.shape
     n_lists = len(starts) - 1
     first = np.zeros(n_lists + 1, np.int64)
@@ -202,8 +213,8 @@ def _search_lists(q, sel, scaled, norms, starts, ids, out):
             i = members[a + j]
             for t in range(d):
                 qt[t, j] = q[i, t]
-            pb[j] = best[i]
-            pid[j] = best_id[i]
+            pb[j] = np.inf
+            pid[j] = -1
         for w in range(starts[c], starts[c + 1]):
             wid = ids[w]
             e = norms[w]
@@ -220,15 +231,16 @@ def _search_lists(q, sel, scaled, norms, starts, ids, out):
                 for j in range(m):
                     dist[j] += qt[t, j] * p0
                 t += 1
-            for j in range(m):
+            for j in range(m):  # a list's ids increase: the first of equal distances is the lowest id
                 v = dist[j]
-                if v < pb[j] or (v == pb[j] and wid < pid[j]):
-                    pb[j] = v
-                    pid[j] = wid
+                nearer = v < pb[j]
+                pb[j] = v if nearer else pb[j]
+                pid[j] = wid if nearer else pid[j]
         for j in range(m):
             i = members[a + j]
-            best[i] = pb[j]
-            best_id[i] = pid[j]
+            if pb[j] < best[i] or (pb[j] == best[i] and pid[j] < best_id[i]):
+                best[i] = pb[j]
+                best_id[i] = pid[j]
     for i in range(n):
         out[i] = best_id[i]
 
