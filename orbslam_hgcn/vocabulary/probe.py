@@ -15,9 +15,9 @@ descriptors of 2000-feature KITTI frames, 99.7-99.8% of TUM and EuRoC ones and 9
 synthetic offices' (asserted >= 99% on TUM and EuRoC by ``tests/test_vocabulary_probe.py``);
 where it misses, its word's squared distance is a median 1.1-1.2 times the nearest one's.
 (24 lists probed: 7 ms, 99.2% on KITTI but 98.9% on the offices.) Since then the list
-selection takes 1.4 ms and the list search 4.4 ms CPU per 2000-feature KITTI keyframe (2.4
-and 5.8 ms before the branch-free gathering and minimum, same words; one process, machine
-load about 12).
+selection takes 1.3 ms and the list search 4.0 ms CPU per 2000-feature KITTI keyframe (2.4
+and 5.8 ms before the branch-free gathering and minimum and the four-point passes, same
+words; one process, machine load 7-12).
 
 Exact pruning does not pay in 20-D: skipping a probed list whose lower bound (the ball
 bound ``(|q - centre| - radius)^2`` or the Voronoi bound of the list's cell against the
@@ -26,10 +26,10 @@ one of the 27 further lists per query on KITTI descriptors.
 
 How: every query picks its lists (squared distances to the list centres, then the
 ``probe``-th smallest by bisection on the value); the (query, list) pairs are grouped by
-list, and each list's points are compared with all queries that probe it at once, in
-loops over the queries that the compiler vectorises. Distances are computed, as faiss
-does, as ``|p|^2 - 2 q.p`` (|q|^2 is the same for every word) in float32; ties go to the
-lower word id.
+list, and each list's points, four at a time, are compared with all queries that probe
+it at once, in loops over the queries that the compiler vectorises. Distances are
+computed, as faiss does, as ``|p|^2 - 2 q.p`` (|q|^2 is the same for every word) in
+float32; ties go to the lower word id.
 """
 
 from __future__ import annotations
@@ -209,7 +209,8 @@ def _search_lists(q, sel, scaled, norms, starts, ids, out):
     best = np.full(n, np.inf, np.float32)
     best_id = np.full(n, -1, np.int32)
     qt = np.empty((d, n), np.float32)
-    dist = np.empty(n, np.float32)
+    d0, d1 = np.empty(n, np.float32), np.empty(n, np.float32)  # distances to the pass's four points
+    d2, d3 = np.empty(n, np.float32), np.empty(n, np.float32)
     pb = np.empty(n, np.float32)
     pid = np.empty(n, np.int32)
     for c in range(n_lists):
@@ -223,27 +224,39 @@ def _search_lists(q, sel, scaled, norms, starts, ids, out):
                 qt[t, j] = q[i, t]
             pb[j] = np.inf
             pid[j] = -1
-        for w in range(starts[c], starts[c + 1]):
-            wid = ids[w]
-            e = norms[w]
+        w, end = starts[c], starts[c + 1]
+        while w < end:  # four points per pass (the last repeated to fill a pass: no change)
+            w1, w2, w3 = min(w + 1, end - 1), min(w + 2, end - 1), min(w + 3, end - 1)
+            e0, e1, e2, e3 = norms[w], norms[w1], norms[w2], norms[w3]
             for j in range(m):
-                dist[j] = e
+                d0[j], d1[j], d2[j], d3[j] = e0, e1, e2, e3
             t = 0
-            while t + 4 <= d:  # four dimensions per pass: a quarter of the loads and stores of dist
-                p0, p1, p2, p3 = scaled[w, t], scaled[w, t + 1], scaled[w, t + 2], scaled[w, t + 3]
+            while t + 4 <= d:  # four dimensions per pass: each query load serves 16 products
+                a0, a1, a2, a3 = scaled[w, t], scaled[w, t + 1], scaled[w, t + 2], scaled[w, t + 3]
+                b0, b1, b2, b3 = scaled[w1, t], scaled[w1, t + 1], scaled[w1, t + 2], scaled[w1, t + 3]
+                c0, c1, c2, c3 = scaled[w2, t], scaled[w2, t + 1], scaled[w2, t + 2], scaled[w2, t + 3]
+                f0, f1, f2, f3 = scaled[w3, t], scaled[w3, t + 1], scaled[w3, t + 2], scaled[w3, t + 3]
                 for j in range(m):
-                    dist[j] += qt[t, j] * p0 + qt[t + 1, j] * p1 + qt[t + 2, j] * p2 + qt[t + 3, j] * p3
+                    x0, x1, x2, x3 = qt[t, j], qt[t + 1, j], qt[t + 2, j], qt[t + 3, j]
+                    d0[j] += x0 * a0 + x1 * a1 + x2 * a2 + x3 * a3
+                    d1[j] += x0 * b0 + x1 * b1 + x2 * b2 + x3 * b3
+                    d2[j] += x0 * c0 + x1 * c1 + x2 * c2 + x3 * c3
+                    d3[j] += x0 * f0 + x1 * f1 + x2 * f2 + x3 * f3
                 t += 4
             while t < d:
-                p0 = scaled[w, t]
+                a0, b0, c0, f0 = scaled[w, t], scaled[w1, t], scaled[w2, t], scaled[w3, t]
                 for j in range(m):
-                    dist[j] += qt[t, j] * p0
+                    x0 = qt[t, j]
+                    d0[j] += x0 * a0
+                    d1[j] += x0 * b0
+                    d2[j] += x0 * c0
+                    d3[j] += x0 * f0
                 t += 1
-            for j in range(m):  # a list's ids increase: the first of equal distances is the lowest id
-                v = dist[j]
-                nearer = v < pb[j]
-                pb[j] = v if nearer else pb[j]
-                pid[j] = wid if nearer else pid[j]
+            _keep_nearer(d0, ids[w], m, pb, pid)  # a list's ids increase: in this order, the
+            _keep_nearer(d1, ids[w1], m, pb, pid)  # first of equal distances has the lowest id
+            _keep_nearer(d2, ids[w2], m, pb, pid)
+            _keep_nearer(d3, ids[w3], m, pb, pid)
+            w += 4
         for j in range(m):
             i = members[a + j]
             if pb[j] < best[i] or (pb[j] == best[i] and pid[j] < best_id[i]):
@@ -252,3 +265,13 @@ def _search_lists(q, sel, scaled, norms, starts, ids, out):
     for i in range(n):
         out[i] = best_id[i]
 
+
+
+@_jit_fma
+def _keep_nearer(dist, wid, m, pb, pid):
+    """pb[j], pid[j] = dist[j], wid where dist[j] < pb[j] (j < m), without branches."""
+    for j in range(m):
+        v = dist[j]
+        nearer = v < pb[j]
+        pb[j] = v if nearer else pb[j]
+        pid[j] = wid if nearer else pid[j]
