@@ -37,6 +37,25 @@ def test_lists_are_the_same_every_build():
     np.testing.assert_array_equal(a.search(points[:50]), np.arange(50))  # a word is its own nearest
 
 
+def test_equal_distances_go_to_the_lowest_id():
+    """Every point three times, at shuffled ids: a query finds the lowest id of its nearest
+    point's copies, probing every list (exact) or the default few, in lists of any order."""
+    rng = np.random.default_rng(5)
+    base = rng.standard_normal((700, 20)).astype(np.float32)
+    perm = rng.permutation(3 * len(base))
+    points = np.repeat(base, 3, axis=0)[perm]  # points[perm_inverse[3 b + r]] = base[b]
+    lowest = np.full(len(base), len(points))
+    np.minimum.at(lowest, perm // 3, np.arange(len(points)))
+    x = base[rng.integers(0, len(base), 400)] + 0.05 * rng.standard_normal((400, 20)).astype(np.float32)
+    want = lowest[brute(x, base)]
+    for probe in (10_000, None):
+        s = ProbedSearch(points, probe=probe)
+        got = s.search(x)
+        exact = got == want
+        assert exact.all() if probe else exact.mean() > 0.95  # the nearest point's lowest copy
+        assert np.all(got == lowest[perm[got] // 3])  # always the lowest copy of the point found
+
+
 def frames_descriptors() -> np.ndarray:
     return np.concatenate([vf.descriptors("tum", i) for i in range(0, 19, 2)]
                           + [vf.descriptors("euroc", i) for i in range(0, 95, 10)])

@@ -143,9 +143,10 @@ class FeatureVector(dict):
             return fv
         sel = nodes[idx]
         order = np.argsort(sel, kind="stable")
-        uniq, starts = np.unique(sel[order], return_index=True)
-        for node, part in zip(uniq.tolist(), np.split(idx[order], starts[1:])):
-            fv[node] = part
+        sel, idx = sel[order], idx[order]
+        bounds = [0, *(np.flatnonzero(sel[1:] != sel[:-1]) + 1).tolist(), len(sel)]  # runs of one node
+        for node, a, b in zip(sel[bounds[:-1]].tolist(), bounds[:-1], bounds[1:]):
+            fv[node] = idx[a:b]
         return fv
 
     def n_features(self) -> int:

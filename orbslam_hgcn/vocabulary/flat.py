@@ -1,7 +1,7 @@
 """Flat vocabularies over PCA-projected descriptors, and the k-means vocabulary.
 
 What the HGCN vocabulary and its ablation share: descriptors are projected to ``d``
-dimensions by PCA (ORB: the 256 bits unpacked, through a byte lookup table), words are
+dimensions by PCA (ORB: the 256 bits, through a nibble lookup table), words are
 points found, up to :data:`FLAT_MAX_WORDS` words, by the coarse-to-fine search of
 :mod:`.probe` (the 28 nearest of round(2 sqrt(W)) lists probed; lists built at load time)
 and, above, through faiss's inverted file over the words (IndexIVFFlat with ``4 sqrt(W)``

@@ -85,14 +85,17 @@ class PCA:
         self.components = np.ascontiguousarray(self.components, dtype=np.float32)
         self._offset = self.mean @ self.components
         if self.binary:
-            # Byte lookup table: (B, 256, d) contribution of byte value v at byte j. Summing
-            # B table rows per descriptor (numpy, one byte at a time) took 1.1 ms CPU per
-            # 1000 ORB descriptors here, against 3.7 ms for unpacking the bits and a matrix
-            # product; the compiled sum (:func:`_lut_rows`), row by row, less again.
+            # Nibble lookup table: (2B, 16, d), row 2j + h holding the contribution of every
+            # value of byte j's low (h = 0) or high (h = 1) four bits. Summing 2B rows per
+            # descriptor (:func:`_lut_rows`) took 0.44 ms CPU per 2000 KITTI descriptors
+            # against 0.90 ms with a byte table ((B, 256, d): 655 kB, out of cache at d = 20;
+            # this one 82 kB) and about 7 ms for unpacking the bits and a matrix product. The
+            # sums agree with the product up to float rounding.
             nbytes = len(self.mean) // 8
-            bits = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).astype(np.float32)  # (256, 8)
-            comp = self.components.reshape(nbytes, 8, -1)
-            self._lut = np.ascontiguousarray(np.einsum("vb,jbd->jvd", bits, comp))
+            bits = np.unpackbits(np.arange(16, dtype=np.uint8)[:, None], axis=1, bitorder="little")[:, :4]
+            comp = self.components.reshape(nbytes, 2, 4, -1)[:, :, ::-1]  # unpacked bits: most significant first
+            lut = np.einsum("vb,jhbd->jhvd", bits.astype(np.float32), comp)  # (B, 2: low/high, 16, d)
+            self._lut = np.ascontiguousarray(lut[:, ::-1].reshape(2 * nbytes, 16, -1))
 
     @property
     def dim(self) -> int:
@@ -113,13 +116,16 @@ class PCA:
 
 @jit
 def _lut_rows(lut, desc, out):
-    """out[i] = sum over bytes j of lut[j, desc[i, j]] (in byte order, float32)."""
+    """out[i] = sum over bytes j of lut[2j, low four bits of desc[i, j]] + lut[2j + 1, high
+    four bits] (float32)."""
     for i in range(desc.shape[0]):
         for t in range(lut.shape[2]):
-            out[i, t] = lut[0, desc[i, 0], t]
-        for j in range(1, desc.shape[1]):
+            out[i, t] = 0
+        for j in range(desc.shape[1]):
+            lo = desc[i, j] & 15
+            hi = desc[i, j] >> 4
             for t in range(lut.shape[2]):
-                out[i, t] += lut[j, desc[i, j], t]
+                out[i, t] += lut[2 * j, lo, t] + lut[2 * j + 1, hi, t]
 
 
 def fit_pca(desc: np.ndarray, dim: int, max_rows: int = 200_000, seed: int = 0) -> PCA:

@@ -12,7 +12,7 @@ Training (after "Semi-supervised Vector-Quantization in Visual SLAM using HGCN")
    seeds, labels every node: a word is a class, and its prototype the network's embedding
    of the class's seed centre, a point of the Poincare ball.
 
-Run time (``assignment = "network"``): a descriptor is PCA-projected (a byte lookup table),
+Run time (``assignment = "network"``): a descriptor is PCA-projected (a nibble lookup table),
 passed through the trained layers as a graph of its own (:class:`~.ball.BallNetwork`,
 compiled), and its word is the nearest prototype in the hyperbolic distance, found by the
 coarse-to-fine search of :mod:`.probe` over lifted prototypes (:class:`~.ball.PrototypeSearch`;
