@@ -70,6 +70,9 @@ class LocalMapper:
     raises it when the tracker queues a new keyframe). Never, when None.
     solver: runs local BA (``local_ba(problem, config, cpu_budget_s, should_stop)``);
     default: in the calling thread. ``in_ba`` is True while a local BA runs.
+    on_points: called with the keyframe once its new points are triangulated and fused
+    with its neighbours', before local BA and culling (a threaded system lets the tracker
+    go on from there).
     """
 
     def __init__(
@@ -87,6 +90,7 @@ class LocalMapper:
         self.should_abort = should_abort
         self.solver = solver if solver is not None else InProcessSolver()
         self.in_ba = False
+        self.on_points: Callable[[KeyFrame], None] | None = None
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.counts: dict[str, int] = defaultdict(int)
         self.reset(m)
@@ -129,6 +133,8 @@ class LocalMapper:
             self.recent = np.concatenate([self.recent, new])
         with self._timed("fuse"):
             fused = search_in_neighbors(m, kf, cfg)
+        if self.on_points is not None:
+            self.on_points(kf)
         if self.track_words is not None and self._lone is not None and self._lone[0] == kf.id:
             c = time.thread_time()
             with self._timed("track_words"):
