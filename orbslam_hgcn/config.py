@@ -785,7 +785,8 @@ class ThreadsConfig:
     # every "each" run, for a latency p95 that the other jobs' load left about as high.
     # "points" (the default): after a keyframe, until mapping has triangulated its new
     # points and fused them with the neighbours' (insert, words, triangulation, fusion);
-    # mapping then holds before local BA and culling until the next frame is tracked;
+    # mapping then solves its local BA (in the solver process, beside the tracker) but
+    # holds before writing it back, and before culling, until the next frame is tracked;
     # after that frame the tracker waits for mapping to finish. So the next frame tracks against the keyframe's points, mapping
     # works while frames arrive, and every frame sees the same map whatever the load: on
     # KITTI 00, 9 runs idle and beside nice-19 and normal-priority jobs (load average 7-10

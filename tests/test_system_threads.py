@@ -168,20 +168,25 @@ def test_camera_poses_of_a_slow_mapping_run_are_as_good_as_its_keyframes(seq, ma
 
 def test_the_frame_after_a_keyframe_is_tracked_between_its_new_points_and_its_local_ba(seq, monkeypatch):
     """threads.mapping_sync "points": after handing a keyframe to local mapping the
-    tracker waits until its new points are triangulated and fused; mapping then holds
-    until the next frame is tracked, and runs local BA and culling before the frame after
-    that. With the fourth keyframe's fusion slowed by 0.3 s: the next frame is tracked
-    after that fusion (the wait is timed), against the keyframe's new points, and before
-    its local BA, which ends before the following frame is tracked. (With "each" the next
-    frame comes after the local BA; without any wait, before the new points exist.)"""
+    tracker waits until its new points are triangulated and fused; mapping then solves
+    the local BA but holds before writing it back until the next frame is tracked, and
+    writes it (and culls) before the frame after that. With the fourth keyframe's fusion
+    slowed by 0.3 s: the next frame is tracked after that fusion (the wait is timed),
+    against the keyframe's new points, and before its local BA is written, which happens
+    before the following frame is tracked. (With "each" the next frame comes after the
+    local BA; without any wait, before the new points exist.)"""
     import orbslam_hgcn.mapping.local_mapper as local_mapper
 
-    triangulate, fuse = local_mapper.create_new_points, local_mapper.search_in_neighbors
+    triangulate, fuse, write = (
+        local_mapper.create_new_points, local_mapper.search_in_neighbors, local_mapper.apply_window
+    )
     events: list[tuple[str, int]] = []
     new_points: set[int] = set()
     tracked_new: dict[int, int] = {}
+    mapping: list = []  # the keyframe being mapped
 
     def triangulation(m, kf, cfg):
+        mapping[:] = [kf]
         new = triangulate(m, kf, cfg)
         if kf.id == 3:
             new_points.update(int(p) for p in new)
@@ -195,10 +200,16 @@ def test_the_frame_after_a_keyframe_is_tracked_between_its_new_points_and_its_lo
             events.append(("fused", kf.frame_id))
         return out
 
+    def writing(m, w, *args):
+        if mapping[0].id == 3:
+            events.append(("BA written", mapping[0].frame_id))
+        return write(m, w, *args)
+
     monkeypatch.setattr(local_mapper, "create_new_points", triangulation)
     monkeypatch.setattr(local_mapper, "search_in_neighbors", slow_fusion)
+    monkeypatch.setattr(local_mapper, "apply_window", writing)
     system = System(seq.camera, _threads(mapping_sync="points"), sequential=False)
-    track, local_ba = system.tracker.track, system.mapper._local_ba
+    track = system.tracker.track
 
     def tracking(frame):
         events.append(("track", frame.id))
@@ -209,19 +220,12 @@ def test_the_frame_after_a_keyframe_is_tracked_between_its_new_points_and_its_lo
         events.append(("tracked", frame.id))
         return result
 
-    def adjusting(kf):
-        if kf.id == 3:
-            events.append(("local BA", kf.frame_id))
-        local_ba(kf)
-        if kf.id == 3:
-            events.append(("adjusted", kf.frame_id))
-
-    system.tracker.track, system.mapper._local_ba = tracking, adjusting
+    system.tracker.track = tracking
     system.run(seq, N_FRAMES, progress=False)
     f = next(i for e, i in events if e == "triangulated")
-    order = [e for e in events if e[0] in ("triangulated", "fused", "local BA", "adjusted") or e[1] in (f + 1, f + 2)]
-    assert order == [("triangulated", f), ("fused", f), ("track", f + 1), ("tracked", f + 1), ("local BA", f),
-                     ("adjusted", f), ("track", f + 2), ("tracked", f + 2)], order
+    order = [e for e in events if e[0] in ("triangulated", "fused", "BA written") or e[1] in (f + 1, f + 2)]
+    assert order == [("triangulated", f), ("fused", f), ("track", f + 1), ("tracked", f + 1), ("BA written", f),
+                     ("track", f + 2), ("tracked", f + 2)], order
     assert len(new_points) >= 20 and tracked_new[f + 1] >= 10, (len(new_points), tracked_new)
     assert max(system.timings["mapping_sync"]) > 250.0  # the slow fusion was waited for
     s = system.stats()
@@ -232,8 +236,8 @@ def test_the_frame_after_a_keyframe_is_tracked_between_its_new_points_and_its_lo
 def test_threaded_runs_with_mapping_sync_points_are_identical(seq):
     """With threads.mapping_sync "points" local mapping works while the next frames
     arrive, yet every frame is tracked against the same map in every run (mapping holds
-    after a keyframe's new points until the next frame is tracked, and the tracker waits
-    for it at fixed frames): two paced threaded runs give the same trajectories, bit for
+    before changing the map after a keyframe's new points until the next frame is
+    tracked, and the tracker waits for it at fixed frames): two paced threaded runs give the same trajectories, bit for
     bit."""
     runs = []
     for _ in range(2):

@@ -72,7 +72,9 @@ class LocalMapper:
     default: in the calling thread. ``in_ba`` is True while a local BA runs.
     on_points: called with the keyframe once its new points are triangulated and fused
     with its neighbours', before local BA and culling (a threaded system lets the tracker
-    go on from there).
+    go on from there); before_changes: called with it once after that, before local BA
+    writes its result into the map or, without one, before culling (a threaded system may
+    hold mapping there until the next frame is tracked; the BA is solved meanwhile).
     """
 
     def __init__(
@@ -91,6 +93,8 @@ class LocalMapper:
         self.solver = solver if solver is not None else InProcessSolver()
         self.in_ba = False
         self.on_points: Callable[[KeyFrame], None] | None = None
+        self.before_changes: Callable[[KeyFrame], None] | None = None
+        self._changing = -1  # the keyframe before_changes was called for
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.counts: dict[str, int] = defaultdict(int)
         self.reset(m)
@@ -148,6 +152,7 @@ class LocalMapper:
             ba_cpu_ms = 1000.0 * (time.process_time() - c)
         self.timings["local_ba"].append(ba_ms)
         self.timings["local_ba_cpu"].append(ba_cpu_ms)
+        self._changes(kf)
         culled: list[int] = []
         if cfg.keyframe_culling and not kf.bad:
             with self._timed("cull_keyframes"), m.lock:
@@ -230,9 +235,16 @@ class LocalMapper:
             self.in_ba = False
         self.counts["ba_budget_hit"] += int(budget_hit)
         self.counts["ba_aborted"] += int(self.should_abort is not None and bool(self.should_abort()))
+        self._changes(kf)
         erased = apply_window(m, w, res.T_cw, res.points, res.outlier)
         self.counts["ba_outliers_erased"] += erased
         self.counts["ba_keyframes_free"] += int((~w.fixed).sum())
+
+    def _changes(self, kf: KeyFrame) -> None:
+        """Call before_changes once per keyframe, before its first change after fusion."""
+        if self.before_changes is not None and self._changing != kf.id:
+            self._changing = kf.id
+            self.before_changes(kf)
 
     # --- timing --------------------------------------------------------------------------
     def _timed(self, name: str) -> _Timer:

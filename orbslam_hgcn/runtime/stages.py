@@ -21,12 +21,14 @@ processed), ``check()`` (re-raise a stage's failure) and ``close(drain)``.
   followed by the insertion on the next frame, in one step) once its robust iterations
   are done (``BackendConfig.local_ba_abort_robust``); a stop request (loop correction,
   shutdown) aborts it too;
-* with ``hold_points`` (``threads.mapping_sync: points``) local mapping stops once a
-  keyframe's new points are triangulated and fused (:attr:`LocalMapper.on_points`) and
-  holds until the tracker releases it (:meth:`ThreadedStages.release_points`), so that the
-  frame after a keyframe is tracked against exactly those points, never against part of
-  its local BA or culling, and the run does not depend on the timing of the threads; a
-  pause, the shutdown or :meth:`ThreadedStages.sync` release it too;
+* with ``hold_points`` (``threads.mapping_sync: points``) local mapping tells the tracker
+  when a keyframe's new points are triangulated and fused (:attr:`LocalMapper.on_points`),
+  solves its local BA, and holds before writing it back (:attr:`LocalMapper.before_changes`)
+  until the tracker releases it (:meth:`ThreadedStages.release_points`), so that the frame
+  after a keyframe is tracked against exactly those points, never against part of its
+  local BA or culling, and the run does not depend on the timing of the threads (a
+  keyframe handed over meanwhile does not cut that BA short); a pause, the shutdown or
+  :meth:`ThreadedStages.sync` release it too;
 * the loop closer pauses local mapping for the correction and for writing back the global
   BA (ORB-SLAM ``RequestStop`` / ``Release``): :meth:`ThreadedStages.pause_mapping` stops
   new keyframes, waits for the frame being tracked to hand over its keyframe
@@ -185,7 +187,6 @@ class ThreadedStages:
         self._item_pointed = False  # of the keyframe being mapped (the mapping thread's)
         self.hold_points = False
         self.hold_timeout_s = 5.0  # a hold the tracker never releases ends after this
-        self._holding = False
         self._solvers: list[Any] = []
         self._mapping: Worker | None = None
         self._loop: Worker | None = None
@@ -203,7 +204,7 @@ class ThreadedStages:
         if isinstance(self.mapper.solver.solver, ProcessSolver):
             self.mapper.solver.solver.start()  # gtsam loads in the child while tracking starts
         self.mapper.should_abort = self._abort_ba
-        self.mapper.on_points = self._pointed
+        self.mapper.on_points, self.mapper.before_changes = self._pointed, self._hold
         self._mapping = Worker("mapping", self._map_one, nice=self._worker_nice).start()
         if self.loop_closer is not None:
             if hasattr(self.loop_closer, "pause_mapping"):
@@ -276,10 +277,11 @@ class ThreadedStages:
 
     @property
     def holding(self) -> bool:
-        """Local mapping holds after a keyframe's new points (hold_points) and nothing
-        waits behind it: it takes a new keyframe as soon as it is released."""
-        w = self._mapping
-        return self._holding and w is not None and w.pending == 0
+        """With hold_points: local mapping has made the new points of every keyframe handed
+        to it and holds (or will hold) before the rest of its changes until released; it
+        goes on to a new keyframe as soon as one is handed over."""
+        with self._points:
+            return self.hold_points and self._n_pointed == self._n_submitted and self._n_released < self._n_pointed
 
     def release_points(self, n: int | None = None) -> bool:
         """Let local mapping carry on past the new points of the first ``n`` keyframes
@@ -294,28 +296,28 @@ class ThreadedStages:
             return True
 
     def _pointed(self, kf: KeyFrame | None = None) -> None:
-        """The keyframe being mapped has its new and fused points (LocalMapper.on_points), or its
-        mapping ended before (``kf`` None). With hold_points, wait there until the keyframe
-        is released or a later one is handed over (at most hold_timeout_s)."""
+        """The keyframe being mapped has its new and fused points (LocalMapper.on_points),
+        or its mapping ended before (``kf`` None)."""
         self._item_pointed = True
         with self._points:
             self._n_pointed += 1
-            k = self._n_pointed
             self._points.notify_all()
-            if kf is None or not self.hold_points:
-                return
+
+    def _hold(self, kf: KeyFrame) -> None:
+        """LocalMapper.before_changes: with hold_points, wait until the keyframe being
+        mapped is released or a later one is handed over (at most hold_timeout_s)."""
+        if not (self.hold_points and self._item_pointed):
+            return
+        with self._points:
+            k = self._n_pointed
             deadline = time.perf_counter() + self.hold_timeout_s
-            self._holding = True
-            try:
-                while self._n_released < k and self._n_submitted <= k and not (self._paused or self._stopping):
-                    left = deadline - time.perf_counter()
-                    if left <= 0:
-                        log.warning("keyframe %d: not released after its new points within %.1f s; mapping "
-                                    "goes on", kf.id, self.hold_timeout_s)
-                        break
-                    self._points.wait(left)
-            finally:
-                self._holding = False
+            while self._n_released < k and self._n_submitted <= k and not (self._paused or self._stopping):
+                left = deadline - time.perf_counter()
+                if left <= 0:
+                    log.warning("keyframe %d: not released after its new points within %.1f s; mapping goes on",
+                                kf.id, self.hold_timeout_s)
+                    break
+                self._points.wait(left)
 
     @contextlib.contextmanager
     def handover(self) -> Iterator[None]:
@@ -337,7 +339,7 @@ class ThreadedStages:
     def _abort_ba(self) -> bool:
         """The mapper's should_abort: a keyframe waits, a pause or the shutdown is asked."""
         w = self._mapping
-        return self._paused or self._stopping or (w is not None and w.pending > 0)
+        return self._paused or self._stopping or (w is not None and w.pending > 0 and not self.hold_points)
 
     # --- the workers ---------------------------------------------------------------------
     def _map_one(self, kf: KeyFrame) -> None:
@@ -419,7 +421,8 @@ class ThreadedStages:
                 s.close()
             self._solvers.clear()
             # The stages are plain classes again, solving in the calling thread.
-            self.mapper.solver, self.mapper.should_abort, self.mapper.on_points = InProcessSolver(), None, None
+            self.mapper.solver, self.mapper.should_abort = InProcessSolver(), None
+            self.mapper.on_points = self.mapper.before_changes = None
             if self.loop_closer is not None:
                 for attr in ("solver", "pause_mapping"):
                     if hasattr(self.loop_closer, attr):
