@@ -237,8 +237,8 @@ def test_threaded_runs_with_mapping_sync_points_are_identical(seq):
     """With threads.mapping_sync "points" local mapping works while the next frames
     arrive, yet every frame is tracked against the same map in every run (mapping holds
     before changing the map after a keyframe's new points until the next frame is
-    tracked, and the tracker waits for it at fixed frames): two paced threaded runs give the same trajectories, bit for
-    bit."""
+    tracked, and the tracker waits for it at fixed frames): two paced threaded runs give
+    the same trajectories, bit for bit."""
     runs = []
     for _ in range(2):
         system = System(seq.camera, _threads(mapping_sync="points"), sequential=False)

@@ -180,8 +180,8 @@ class ThreadedStages:
         self._paused = False
         self._stopping = False
         # Keyframes handed to local mapping, how many of them have their new points
-        # triangulated and fused (or were dropped before; wait_for_points), and how many local mapping
-        # may carry on with past that (release_points; only with hold_points).
+        # triangulated and fused (or were dropped before; wait_for_points), and how many
+        # local mapping may carry on with past that (release_points; only with hold_points).
         self._points = threading.Condition()
         self._n_submitted = self._n_pointed = self._n_released = 0
         self._item_pointed = False  # of the keyframe being mapped (the mapping thread's)
@@ -281,7 +281,8 @@ class ThreadedStages:
         to it and holds (or will hold) before the rest of its changes until released; it
         goes on to a new keyframe as soon as one is handed over."""
         with self._points:
-            return self.hold_points and self._n_pointed == self._n_submitted and self._n_released < self._n_pointed
+            made = self._n_pointed == self._n_submitted
+            return self.hold_points and made and self._n_released < self._n_pointed
 
     def release_points(self, n: int | None = None) -> bool:
         """Let local mapping carry on past the new points of the first ``n`` keyframes
