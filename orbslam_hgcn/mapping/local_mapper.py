@@ -137,6 +137,12 @@ class LocalMapper:
             self.recent = np.concatenate([self.recent, new])
         with self._timed("fuse"):
             fused = search_in_neighbors(m, kf, cfg)
+        # Local BA's window is cut from the map as fusion left it, before on_points lets the
+        # tracker change it (a keyframe of the next frame adds observations).
+        window = None
+        if cfg.local_ba and m.n_keyframes() > 2 and not kf.bad:
+            with m.lock:
+                window = local_window(m, kf.id, cfg.ba_max_keyframes or None)
         if self.on_points is not None:
             self.on_points(kf)
         if self.track_words is not None and self._lone is not None and self._lone[0] == kf.id:
@@ -145,9 +151,9 @@ class LocalMapper:
                 self._track_bow(kf)
             self.timings["track_words_cpu"].append(1000.0 * (time.thread_time() - c))
         ba_ms = ba_cpu_ms = 0.0
-        if cfg.local_ba and m.n_keyframes() > 2 and not kf.bad:
+        if window is not None:
             t, c = time.perf_counter(), time.process_time()
-            self._local_ba(kf)
+            self._local_ba(kf, window)
             ba_ms = 1000.0 * (time.perf_counter() - t)
             ba_cpu_ms = 1000.0 * (time.process_time() - c)
         self.timings["local_ba"].append(ba_ms)
@@ -213,10 +219,10 @@ class LocalMapper:
         kf.bow, _ = self.track_words.keyframe_bow(kf.id, kf.keypoints.desc, words, idx, pids, obs,
                                                   descs.__getitem__, x=x)
 
-    def _local_ba(self, kf: KeyFrame) -> None:
+    def _local_ba(self, kf: KeyFrame, w: Any) -> None:
+        """Solve local BA over the window ``w`` (map.window.local_window of ``kf``) and
+        write the result back."""
         m = self.map
-        with m.lock:
-            w = local_window(m, kf.id, self.config.ba_max_keyframes or None)
         if w.n_observations == 0 or not (~w.fixed).any():
             return
         problem = as_problem(w.T_cw, w.fixed, w.points, w.obs_kf, w.obs_pt, w.uv, w.inv_sigma2, w.K)
