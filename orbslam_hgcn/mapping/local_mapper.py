@@ -70,6 +70,11 @@ class LocalMapper:
     raises it when the tracker queues a new keyframe). Never, when None.
     solver: runs local BA (``local_ba(problem, config, cpu_budget_s, should_stop)``);
     default: in the calling thread. ``in_ba`` is True while a local BA runs.
+    on_points: called with the keyframe once its new points are triangulated and fused
+    with its neighbours', before local BA and culling (a threaded system lets the tracker
+    go on from there); before_changes: called with it once after that, before local BA
+    writes its result into the map or, without one, before culling (a threaded system may
+    hold mapping there until the next frame is tracked; the BA is solved meanwhile).
     """
 
     def __init__(
@@ -87,6 +92,9 @@ class LocalMapper:
         self.should_abort = should_abort
         self.solver = solver if solver is not None else InProcessSolver()
         self.in_ba = False
+        self.on_points: Callable[[KeyFrame], None] | None = None
+        self.before_changes: Callable[[KeyFrame], None] | None = None
+        self._changing = -1  # the keyframe before_changes was called for
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.counts: dict[str, int] = defaultdict(int)
         self.reset(m)
@@ -129,19 +137,28 @@ class LocalMapper:
             self.recent = np.concatenate([self.recent, new])
         with self._timed("fuse"):
             fused = search_in_neighbors(m, kf, cfg)
+        # Local BA's window is cut from the map as fusion left it, before on_points lets the
+        # tracker change it (a keyframe of the next frame adds observations).
+        window = None
+        if cfg.local_ba and m.n_keyframes() > 2 and not kf.bad:
+            with m.lock:
+                window = local_window(m, kf.id, cfg.ba_max_keyframes or None)
+        if self.on_points is not None:
+            self.on_points(kf)
         if self.track_words is not None and self._lone is not None and self._lone[0] == kf.id:
             c = time.thread_time()
             with self._timed("track_words"):
                 self._track_bow(kf)
             self.timings["track_words_cpu"].append(1000.0 * (time.thread_time() - c))
         ba_ms = ba_cpu_ms = 0.0
-        if cfg.local_ba and m.n_keyframes() > 2 and not kf.bad:
+        if window is not None:
             t, c = time.perf_counter(), time.process_time()
-            self._local_ba(kf)
+            self._local_ba(kf, window)
             ba_ms = 1000.0 * (time.perf_counter() - t)
             ba_cpu_ms = 1000.0 * (time.process_time() - c)
         self.timings["local_ba"].append(ba_ms)
         self.timings["local_ba_cpu"].append(ba_cpu_ms)
+        self._changes(kf)
         culled: list[int] = []
         if cfg.keyframe_culling and not kf.bad:
             with self._timed("cull_keyframes"), m.lock:
@@ -202,10 +219,10 @@ class LocalMapper:
         kf.bow, _ = self.track_words.keyframe_bow(kf.id, kf.keypoints.desc, words, idx, pids, obs,
                                                   descs.__getitem__, x=x)
 
-    def _local_ba(self, kf: KeyFrame) -> None:
+    def _local_ba(self, kf: KeyFrame, w: Any) -> None:
+        """Solve local BA over the window ``w`` (map.window.local_window of ``kf``) and
+        write the result back."""
         m = self.map
-        with m.lock:
-            w = local_window(m, kf.id, self.config.ba_max_keyframes or None)
         if w.n_observations == 0 or not (~w.fixed).any():
             return
         problem = as_problem(w.T_cw, w.fixed, w.points, w.obs_kf, w.obs_pt, w.uv, w.inv_sigma2, w.K)
@@ -224,9 +241,16 @@ class LocalMapper:
             self.in_ba = False
         self.counts["ba_budget_hit"] += int(budget_hit)
         self.counts["ba_aborted"] += int(self.should_abort is not None and bool(self.should_abort()))
+        self._changes(kf)
         erased = apply_window(m, w, res.T_cw, res.points, res.outlier)
         self.counts["ba_outliers_erased"] += erased
         self.counts["ba_keyframes_free"] += int((~w.fixed).sum())
+
+    def _changes(self, kf: KeyFrame) -> None:
+        """Call before_changes once per keyframe, before its first change after fusion."""
+        if self.before_changes is not None and self._changing != kf.id:
+            self._changing = kf.id
+            self.before_changes(kf)
 
     # --- timing --------------------------------------------------------------------------
     def _timed(self, name: str) -> _Timer:

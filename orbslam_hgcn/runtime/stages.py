@@ -3,7 +3,9 @@ calling thread, or through worker threads as ORB-SLAM runs them.
 
 Both runners offer the same small interface to :class:`~orbslam_hgcn.runtime.system.System`:
 ``mapping_idle()`` (the tracker's AcceptKeyFrames), ``submit(kf)``, ``optimising`` (an
-optimisation is being solved), ``sync()`` (wait until every keyframe handed over is
+optimisation is being solved), ``wait_for_points(timeout_s)`` (wait until every keyframe
+handed over has its new points triangulated and fused), ``submitted``, ``release_points(n)`` and
+``holding`` (see below), ``sync()`` (wait until every keyframe handed over is
 processed), ``check()`` (re-raise a stage's failure) and ``close(drain)``.
 
 :class:`ThreadedStages` (ORB-SLAM, Mur-Artal, Montiel & Tardos, T-RO 2015, Sec. III):
@@ -19,6 +21,14 @@ processed), ``check()`` (re-raise a stage's failure) and ``close(drain)``.
   followed by the insertion on the next frame, in one step) once its robust iterations
   are done (``BackendConfig.local_ba_abort_robust``); a stop request (loop correction,
   shutdown) aborts it too;
+* with ``hold_points`` (``threads.mapping_sync: points``) local mapping tells the tracker
+  when a keyframe's new points are triangulated and fused (:attr:`LocalMapper.on_points`),
+  solves its local BA, and holds before writing it back (:attr:`LocalMapper.before_changes`)
+  until the tracker releases it (:meth:`ThreadedStages.release_points`), so that the frame
+  after a keyframe is tracked against exactly those points, never against part of its
+  local BA or culling, and the run does not depend on the timing of the threads (a
+  keyframe handed over meanwhile does not cut that BA short); a pause, the shutdown or
+  :meth:`ThreadedStages.sync` release it too;
 * the loop closer pauses local mapping for the correction and for writing back the global
   BA (ORB-SLAM ``RequestStop`` / ``Release``): :meth:`ThreadedStages.pause_mapping` stops
   new keyframes, waits for the frame being tracked to hand over its keyframe
@@ -126,6 +136,17 @@ class SequentialStages:
         """Local mapping is idle already."""
         return True
 
+    def wait_for_points(self, timeout_s: float) -> bool:
+        """Every keyframe is mapped already."""
+        return True
+
+    submitted = 0  # nothing is held
+    holding = False
+
+    def release_points(self, n: int | None = None) -> bool:
+        """Nothing is held."""
+        return False
+
     def submit(self, kf: KeyFrame) -> None:
         out = self.mapper.process(kf)
         if out is not None and self.loop_closer is not None:
@@ -158,6 +179,14 @@ class ThreadedStages:
         self._handover = threading.Lock()  # held by the tracker from its keyframe decision to the hand-over
         self._paused = False
         self._stopping = False
+        # Keyframes handed to local mapping, how many of them have their new points
+        # triangulated and fused (or were dropped before; wait_for_points), and how many
+        # local mapping may carry on with past that (release_points; only with hold_points).
+        self._points = threading.Condition()
+        self._n_submitted = self._n_pointed = self._n_released = 0
+        self._item_pointed = False  # of the keyframe being mapped (the mapping thread's)
+        self.hold_points = False
+        self.hold_timeout_s = 5.0  # a hold the tracker never releases ends after this
         self._solvers: list[Any] = []
         self._mapping: Worker | None = None
         self._loop: Worker | None = None
@@ -175,6 +204,7 @@ class ThreadedStages:
         if isinstance(self.mapper.solver.solver, ProcessSolver):
             self.mapper.solver.solver.start()  # gtsam loads in the child while tracking starts
         self.mapper.should_abort = self._abort_ba
+        self.mapper.on_points, self.mapper.before_changes = self._pointed, self._hold
         self._mapping = Worker("mapping", self._map_one, nice=self._worker_nice).start()
         if self.loop_closer is not None:
             if hasattr(self.loop_closer, "pause_mapping"):
@@ -223,6 +253,73 @@ class ThreadedStages:
             time.sleep(poll_s)
         return True
 
+    def wait_for_points(self, timeout_s: float) -> bool:
+        """Wait until local mapping has triangulated and fused the new points of every
+        keyframe handed to it (local BA and culling may still run), at most ``timeout_s``;
+        True when it has. A keyframe that mapping skips or fails on counts as done."""
+        deadline = time.perf_counter() + timeout_s
+        with self._points:
+            target = self._n_submitted
+            while self._n_pointed < target and not self._stopping:
+                self.check()  # a failed stage maps nothing more
+                left = deadline - time.perf_counter()
+                if left <= 0:
+                    break
+                self._points.wait(left)
+            ok = self._n_pointed >= target
+        self.check()
+        return ok
+
+    @property
+    def submitted(self) -> int:
+        """Keyframes handed to local mapping so far."""
+        return self._n_submitted
+
+    @property
+    def holding(self) -> bool:
+        """With hold_points: local mapping has made the new points of every keyframe handed
+        to it and holds (or will hold) before the rest of its changes until released; it
+        goes on to a new keyframe as soon as one is handed over."""
+        with self._points:
+            made = self._n_pointed == self._n_submitted
+            return self.hold_points and made and self._n_released < self._n_pointed
+
+    def release_points(self, n: int | None = None) -> bool:
+        """Let local mapping carry on past the new points of the first ``n`` keyframes
+        handed to it (None: all so far); True when that releases a keyframe not released
+        before."""
+        with self._points:
+            n = self._n_submitted if n is None else min(n, self._n_submitted)
+            if n <= self._n_released:
+                return False
+            self._n_released = n
+            self._points.notify_all()
+            return True
+
+    def _pointed(self, kf: KeyFrame | None = None) -> None:
+        """The keyframe being mapped has its new and fused points (LocalMapper.on_points),
+        or its mapping ended before (``kf`` None)."""
+        self._item_pointed = True
+        with self._points:
+            self._n_pointed += 1
+            self._points.notify_all()
+
+    def _hold(self, kf: KeyFrame) -> None:
+        """LocalMapper.before_changes: with hold_points, wait until the keyframe being
+        mapped is released or a later one is handed over (at most hold_timeout_s)."""
+        if not (self.hold_points and self._item_pointed):
+            return
+        with self._points:
+            k = self._n_pointed
+            deadline = time.perf_counter() + self.hold_timeout_s
+            while self._n_released < k and self._n_submitted <= k and not (self._paused or self._stopping):
+                left = deadline - time.perf_counter()
+                if left <= 0:
+                    log.warning("keyframe %d: not released after its new points within %.1f s; mapping goes on",
+                                kf.id, self.hold_timeout_s)
+                    break
+                self._points.wait(left)
+
     @contextlib.contextmanager
     def handover(self) -> Iterator[None]:
         """Held by the tracker around a frame's tracking and the hand-over of its keyframe,
@@ -235,15 +332,26 @@ class ThreadedStages:
         # A keyframe waiting in the queue is linked in the map already; keyframe culling of
         # the one being mapped must not remove it before its own insertion.
         self.mapper.map.set_not_erase(kf.id)
+        with self._points:
+            self._n_submitted += 1
+            self._points.notify_all()  # a keyframe held after its new points goes on
         self._mapping.submit(kf)
 
     def _abort_ba(self) -> bool:
         """The mapper's should_abort: a keyframe waits, a pause or the shutdown is asked."""
         w = self._mapping
-        return self._paused or self._stopping or (w is not None and w.pending > 0)
+        return self._paused or self._stopping or (w is not None and w.pending > 0 and not self.hold_points)
 
     # --- the workers ---------------------------------------------------------------------
     def _map_one(self, kf: KeyFrame) -> None:
+        self._item_pointed = False
+        try:
+            self._map_keyframe(kf)
+        finally:
+            if not self._item_pointed:
+                self._pointed()
+
+    def _map_keyframe(self, kf: KeyFrame) -> None:
         with self._gate:
             m = self.mapper.map
             m.set_erase(kf.id)
@@ -269,6 +377,7 @@ class ThreadedStages:
             self._paused = True  # from now on the tracker makes no keyframe (mapping_idle)
             with self._handover:  # a frame that decided on one before has handed it over
                 pass
+            self.release_points()
             w = self._mapping
             if w is not None and not self._stopping:
                 w.wait_idle()
@@ -282,6 +391,7 @@ class ThreadedStages:
     # --- life cycle ----------------------------------------------------------------------
     def sync(self) -> None:
         """Wait until every keyframe handed over is mapped and loop-checked."""
+        self.release_points()
         for w in (self._mapping, self._loop):
             if w is not None:
                 w.wait_idle()
@@ -296,6 +406,7 @@ class ThreadedStages:
         aborted either way), join them, stop the solver processes. The first stage error
         is raised after everything is stopped."""
         self._stopping = not drain
+        self.release_points()
         error: BaseException | None = None
         try:
             for w in (self._mapping, self._loop):  # mapping first: it feeds the loop closer
@@ -312,6 +423,7 @@ class ThreadedStages:
             self._solvers.clear()
             # The stages are plain classes again, solving in the calling thread.
             self.mapper.solver, self.mapper.should_abort = InProcessSolver(), None
+            self.mapper.on_points = self.mapper.before_changes = None
             if self.loop_closer is not None:
                 for attr in ("solver", "pause_mapping"):
                     if hasattr(self.loop_closer, attr):

@@ -403,6 +403,7 @@ class System:
         self._span: tuple[float, float] | None = None  # (first frame's perf_counter, timestamp)
         self._last_out: tuple[float, float] | None = None  # (last pose's perf_counter, timestamp)
         self._resume_by: float | None = None  # see run(): the latest a keyframe may hold the tracker
+        self._hold_points = False  # see process(): threads.mapping_sync "points" in force
         # Called as observer(system, record, result) after every frame of :meth:`run`
         # (visualisation, progress reporting); they must not change the map.
         self.observers: list[Callable[[System, FrameRecord, TrackResult], None]] = []
@@ -438,6 +439,11 @@ class System:
         # with the BAs finished).
         if self.tracker.starved_on_interval:
             return self.stages.mapping_done()
+        # With mapping_sync "points" a mapping held after a keyframe's new points
+        # takes the next keyframe once released, as an idle one (the keyframes made do not
+        # depend on how far it got).
+        if self._hold_points and self.stages.holding:
+            return True
         return self.stages.mapping_idle()
 
     def close(self, drain: bool = True) -> None:
@@ -518,6 +524,12 @@ class System:
         threads = self.configs.threads
         sync = self._resume_by is not None and threads.sync_mapping_s > 0
         self.tracker.starved_on_interval = sync and threads.mapping_sync == "due"
+        # "points": local mapping holds after a keyframe's new points until the next frame
+        # is tracked (ThreadedStages.hold_points).
+        hold = self._hold_points = sync and threads.mapping_sync == "points"
+        if isinstance(stages, ThreadedStages):
+            stages.hold_points = hold
+        submitted = stages.submitted
         # A loop correction pausing local mapping waits for this frame's keyframe to be
         # handed over (ThreadedStages.pause_mapping); after a map reset it is handed over
         # below, once the stages are on the new map.
@@ -549,7 +561,9 @@ class System:
         self.frame_started.append(t0)
         optimising = optimising or stages.optimising or stages.activity.started != started
         self.frame_optimising.append(bool(optimising))
-        if sync and threads.mapping_sync == "due":
+        if hold:
+            self._pipeline_mapping(result, stages, submitted)
+        elif sync and threads.mapping_sync == "due":
             if result.keyframe_starved:
                 # The next keyframe is due and mapping has not taken the previous one yet.
                 self._map_due_keyframe(result, stages)
@@ -575,6 +589,29 @@ class System:
             # The frame was tracked without the points mapping made meanwhile; the keyframe
             # made from it observes them as one made after the mapping would.
             self._keyframe_after_wait(result, retrack=True)
+        self.timings["mapping_sync"].append(1000.0 * (time.perf_counter() - t0))
+
+    def _pipeline_mapping(self, result: TrackResult, stages: ThreadedStages, submitted: int) -> None:
+        """threads.mapping_sync "points", after the frame's pose is out: local mapping holds
+        after the new points (triangulated and fused) of the keyframes handed over before
+        this frame (the first ``submitted``); release them (local BA and culling now run).
+        If this frame made a keyframe, wait until its new points are made and fused
+        (mapping finishes the released keyframes first), so that the next frame is tracked
+        against them; else wait until mapping has finished the released keyframes, so that
+        the next frame sees their local BA. Each wait is bounded by threads.sync_mapping_s (and
+        with drop_late by the next frame's resume time) and timed as mapping_sync. Mapping
+        thus works while the frames arrive, and when it keeps up, every frame is tracked
+        against the same map whatever the machine's load."""
+        released = stages.release_points(submitted)
+        if not (result.new_keyframes or released):
+            return
+        t0 = time.perf_counter()
+        limit = min(self.configs.threads.sync_mapping_s, self._resume_by - t0)
+        if limit > 0:
+            if result.new_keyframes:
+                stages.wait_for_points(limit)
+            else:
+                stages.wait_for_mapping(limit, done=True)
         self.timings["mapping_sync"].append(1000.0 * (time.perf_counter() - t0))
 
     def _keyframe_after_wait(self, result: TrackResult, retrack: bool = False) -> KeyFrame | None:
