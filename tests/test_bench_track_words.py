@@ -274,3 +274,16 @@ def test_kitti_stretch_has_no_loop_at_the_gap(tw):
     gt = tw.loop_truth(poses, f["dist"], f["angle"])
     assert not (gt & (frames[:, None] - frames[None, :] >= f["min_gap"])).any()
     assert gt[np.arange(1, len(poses)), np.arange(len(poses) - 1)].all()  # consecutive keyframes are near
+
+
+def test_depth_points_back_project(tw):
+    from orbslam_hgcn.geometry.camera import PinholeCamera
+
+    cam = PinholeCamera(100.0, 100.0, 50.0, 40.0, 100, 80)
+    inv = np.full((80, 100), 0.5, np.float32)  # 2 m everywhere ...
+    inv[10, 70] = 0.0  # ... but one pixel without depth
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    p = tw.depth_points(np.array([[50.0, 40.0], [60.0, 40.0], [70.0, 10.0]]), inv, cam, T)
+    assert np.allclose(p[0], [1.0, 2.0, 5.0]) and np.allclose(p[1], [1.2, 2.0, 5.0])
+    assert np.isnan(p[2]).all()
