@@ -59,6 +59,13 @@ sequences of a family its units):
 * ``replay``: the ``fr3_replay_hard`` preset (the real fr3 long-office camera path round a
   desk and back to its start, motion blur, exposure steps, vignetting, JPEG) in synthetic
   rooms 10..12, loop truth as for the offices;
+* ``map`` (the saved-map protocol): the keyframes of maps saved by ``orbslam-hgcn run
+  --vocab orb --save-map`` (``--maps MAP.npz=SEQ_DIR``), each feature's track its map
+  point; the track window keeps every member less than ``--min-gap`` frames older
+  (:func:`map_window`), loop truth from the sequence's ground truth at the keyframes'
+  times. The map holds its final observations: an earlier keyframe's link to a point may
+  have been made after the query was inserted (point fusion), so this is causal in
+  keyframe order only;
 * ``kitti``: the real KITTI 00 frames 0-159 (117 m of street, no revisit; database gap 30
   frames, loop within 4 m: the test suite checks that the stretch has none). A
   false-positive check, not AP: per arm, the threshold that gives 90% precision on the
@@ -556,6 +563,44 @@ def depth_points(uv: np.ndarray, inv_depth: np.ndarray, cam, T_wc: np.ndarray) -
     return pc @ T_wc[:3, :3].T + T_wc[:3, 3]
 
 
+def map_window(frames: np.ndarray, min_gap: int) -> int:
+    """The most keyframes a track may reach back (itself included) so that every member is
+    less than ``min_gap`` frames older than the keyframe, for keyframes at irregular
+    ``frames``: the fewest keyframes within ``min_gap`` frames over the keyframes at least
+    ``min_gap`` frames into the sequence (all of them when none is)."""
+    lo = np.searchsorted(frames, frames - min_gap, side="right")
+    count = np.arange(len(frames)) - lo + 1
+    later = frames - min_gap >= frames[0]
+    return int(max(1, count[later].min() if later.any() else count.min()))
+
+
+def map_keyframes(map_file: Path, seq_dir: Path, args) -> Keyframes:
+    """The keyframes of a map saved by ``orbslam-hgcn run --save-map`` over the sequence in
+    ``seq_dir`` (any kind :func:`open_sequence` detects): their features in keyframe id order,
+    each feature's track its map point (-1: none), loop truth from the sequence's ground-truth poses at the keyframes' times, frames
+    the keyframes' frame numbers in the sequence; no depth points."""
+    from orbslam_hgcn.map.io import read_header
+
+    a, _ = read_header(map_file)
+    order = np.argsort(a["kf_id"], kind="stable")
+    off = a["kf_feat_offset"]
+    desc = [a["kp_desc"][off[k]:off[k + 1]] for k in order]
+    uv = [np.asarray(a["kp_uv"][off[k]:off[k + 1]], np.float32) for k in order]
+    tracks = [a["kp_point"][off[k]:off[k + 1]].astype(np.int64) for k in order]
+    seq = open_sequence(None, seq_dir)
+    ts = seq.timestamps
+    idx = np.clip(np.searchsorted(ts, a["kf_timestamp"][order]), 1, len(ts) - 1)
+    idx -= (a["kf_timestamp"][order] - ts[idx - 1]) < (ts[idx] - a["kf_timestamp"][order])
+    poses = [seq.pose(int(i)) for i in idx]
+    if any(p is None for p in poses):
+        raise SystemExit(f"bench_track_words: {seq_dir}: no ground-truth pose for every keyframe of {map_file}")
+    frames = idx.astype(np.int64)
+    poses = np.stack(poses)
+    return Keyframes(map_file.stem, frames, desc, uv, tracks, map_window(frames, args.min_gap),
+                     loop_truth(poses, args.dist, args.angle), poses[:, :3, 3],
+                     [np.full((len(d), 3), np.nan) for d in desc])
+
+
 KITTI_DIR = Path(__file__).resolve().parents[2] / "shared/data/kitti00_first160/sequences/00"
 
 
@@ -598,6 +643,12 @@ def run_sequence(kfs: Keyframes, vocabs: dict[int, dict], arms: dict[int, list[s
     return out
 
 
+def _finite_mean(values: list[float]) -> float:
+    """Mean of the finite values (NaN when none: no same-point pairs without depth)."""
+    v = np.asarray(values, np.float64)
+    return float(v[np.isfinite(v)].mean()) if np.isfinite(v).any() else float("nan")
+
+
 def summarise(per_seq: dict[str, dict], arms: dict[int, list[str]]) -> tuple[dict, dict]:
     """Per word count and arm the mean figures; the contrasts (with Holm p)."""
     names = list(per_seq)
@@ -605,7 +656,7 @@ def summarise(per_seq: dict[str, dict], arms: dict[int, list[str]]) -> tuple[dic
     for size in arms:
         for arm in arms[size]:
             rs = [per_seq[n][f"{size} {arm}"] for n in names]
-            means[f"{size} {arm}"] = {k: float(np.nanmean([r[k] for r in rs]))
+            means[f"{size} {arm}"] = {k: _finite_mean([r[k] for r in rs])
                                       for k in ("AP", "recall@1", "recall@P100", "repeatability", "effective_words")}
     rng = np.random.default_rng(0)
     table = {}
@@ -628,10 +679,12 @@ FAMILIES: dict[str, dict] = {
     "street": {"seeds": [10, 11, 12, 13], "fps": 10.0, "kf_every": 3, "min_gap": 100, "dist": 4.0, "angle": 30.0},
     "replay": {"seeds": [10, 11, 12], "fps": 10.0, "kf_every": 3, "min_gap": 100, "dist": 0.5, "angle": 30.0},
     "kitti": {"seeds": [0], "fps": 10.0, "kf_every": 3, "min_gap": 30, "dist": 4.0, "angle": 30.0},
+    "map": {"seeds": [], "fps": 10.0, "kf_every": 1, "min_gap": 100, "dist": 0.5, "angle": 30.0},
 }
 SETTINGS = ("fps", "kf_every", "min_gap", "dist", "angle")
 FAMILY_TITLE = {"office": "rendered two-lap offices", "street": "rendered street drives, driven twice",
-                "replay": "hard fr3 replays (the real path round a desk, back to its start)"}
+                "replay": "hard fr3 replays (the real path round a desk, back to its start)",
+                "map": "saved ORB-tree SLAM maps (the map's keyframes; tracks from its map points)"}
 FP_PRECISION = 0.9  # the KITTI check's threshold: the score that gives this precision on the offices
 
 
@@ -648,6 +701,8 @@ def family_args(args, family: str) -> argparse.Namespace:
 
 def units(args) -> list[tuple[str, int]]:
     """The sequences of a run as (family, seed): ``kitti`` adds its calibration offices."""
+    if args.family == "map":
+        return [("map", i) for i in range(len(args.maps))]
     out = [(args.family, seed) for seed in (args.scene_seeds or FAMILIES[args.family]["seeds"])]
     if args.family == "kitti":
         out = out[:1] + [("office", seed) for seed in args.calib_seeds]
@@ -658,6 +713,9 @@ def keyframes_of(family: str, seed: int, args, extractor: ORBExtractor) -> Keyfr
     a = family_args(args, family)
     if family == "kitti":
         return kitti_keyframes(args.cache_dir, a, extractor)
+    if family == "map":
+        map_file, seq_dir = args.maps[seed]
+        return map_keyframes(map_file, seq_dir, a)
     return {"office": office_keyframes, "street": street_keyframes, "replay": replay_keyframes}[family](
         args.cache_dir, seed, a, extractor)
 
@@ -743,6 +801,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--street-s", type=float, default=30.0, help="street: seconds of each pass")
     ap.add_argument("--replay-s", type=float, default=None, help="replay: its first this many seconds (default all)")
     ap.add_argument("--kitti-dir", type=Path, default=KITTI_DIR)
+    ap.add_argument("--maps", nargs="+", default=[], metavar="MAP.npz=SEQ_DIR",
+                    help="map: maps saved by 'orbslam-hgcn run --vocab orb --save-map', each with its sequence")
     ap.add_argument("--point-tol", type=float, default=None,
                     help="same surface point: world points within this (m; default 0.01, street 0.05)")
     ap.add_argument("--threads", type=int, default=1,
@@ -754,6 +814,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--record", metavar="NAME", default=None, help="write bench/results/NAME.json (bench/figures.py)")
     args = ap.parse_args(argv)
+    if args.family == "map":
+        if not args.maps or any("=" not in m for m in args.maps):
+            ap.error("--family map needs --maps MAP.npz=SEQ_DIR ...")
+        args.maps = [tuple(Path(x) for x in m.split("=", 1)) for m in args.maps]
     if args.point_tol is None:
         args.point_tol = 0.05 if args.family == "street" else 0.01
     load_start = os.getloadavg()[0]

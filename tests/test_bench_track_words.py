@@ -287,3 +287,17 @@ def test_depth_points_back_project(tw):
     p = tw.depth_points(np.array([[50.0, 40.0], [60.0, 40.0], [70.0, 10.0]]), inv, cam, T)
     assert np.allclose(p[0], [1.0, 2.0, 5.0]) and np.allclose(p[1], [1.2, 2.0, 5.0])
     assert np.isnan(p[2]).all()
+
+
+def test_map_window_keeps_members_inside_the_gap(tw):
+    # keyframes every 30 frames, gap 100: 120 reaches back to 30 (4 keyframes), never to 0
+    assert tw.map_window(np.array([0, 30, 60, 90, 120, 150, 180]), 100) == 4
+    # a dense stretch does not widen it: 200 has no other keyframe within 100 frames
+    assert tw.map_window(np.array([0, 10, 20, 50, 200, 210, 320]), 100) == 1
+    frames = np.sort(np.random.default_rng(1).choice(2000, 300, replace=False))
+    w = tw.map_window(frames, 100)
+    k = np.arange(w - 1, len(frames))
+    assert np.all(frames[k] - frames[k - w + 1] < 100)  # every window is inside the gap ...
+    later = np.flatnonzero(frames - 100 >= frames[0])
+    lo = np.searchsorted(frames, frames[later] - 100, side="right")
+    assert np.any(later - lo + 1 == w)  # ... and one more keyframe would leave it somewhere
