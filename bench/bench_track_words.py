@@ -47,6 +47,33 @@ sequence's keyframes use). Paired contrasts over sequences (units) per word coun
 difference, bootstrap 95% CI (10 000 resamples of the units), Wilcoxon signed-rank p,
 Holm-corrected over every contrast, metric and word count.
 
+Other families of sequences (``--family``; each its own arm table and contrasts, the
+sequences of a family its units):
+
+* ``street``: rendered street drives (KITTI 00's camera, 1241x376, noise and exposure
+  drift), each street driven twice from the same start (:func:`street_passes`: the second
+  pass 1 m left of the first and 0.2 m lower, its own jitter and noise), the second pass's
+  keyframes after the first's; a loop is within 4 m and 30 degrees (keyframes are 2.5 m
+  apart at 8.5 m/s); same surface point within 5 cm; scene seeds 10..17 (the vocabularies
+  saw no street);
+* ``replay``: the ``fr3_replay_hard`` preset (the real fr3 long-office camera path round a
+  desk and back to its start, motion blur, exposure steps, vignetting, JPEG) in synthetic
+  rooms 10..15, loop truth as for the offices;
+* ``map`` (the saved-map protocol): the keyframes of maps saved by ``orbslam-hgcn run
+  --vocab orb --save-map`` (``--maps MAP.npz=SEQ_DIR``), each feature's track its map
+  point; the track window keeps every member less than ``--min-gap`` frames older
+  (:func:`map_window`), loop truth from the sequence's ground truth at the keyframes'
+  times. The map holds its final observations: an earlier keyframe's link to a point may
+  have been made after the query was inserted (point fusion), so this is causal in
+  keyframe order only;
+* ``kitti``: the real KITTI 00 frames 0-159 (117 m of street, no revisit; database gap 30
+  frames, loop within 4 m: the test suite checks that the stretch has none). A
+  false-positive check, not AP: per arm, the threshold that gives 90% precision on the
+  pooled top-1 detections of the validation offices (``--calib-seeds``, default 0 1 2)
+  and how many of the stretch's queries score at least that, and its highest score.
+
+The street, replay and KITTI settings were set before their first run and not tuned.
+
 Settings were frozen on validation scene seeds 0, 1, 2 (``--scene-seeds 0 1 2``) before the
 test run on the default seeds 10..29, by a rule fixed beforehand and blind to the arms'
 differences: keep the defaults (keyframe every 3 frames at 10 fps, database gap 100 frames,
@@ -57,7 +84,8 @@ depth points, are kept in ``--cache-dir``; ``--prepare-only`` makes them (run a 
 on disjoint seeds), after which a run only computes the arms. ``--json`` writes everything;
 ``--record NAME`` the README's figures (``bench/figures.py``).
 
-    python bench/bench_track_words.py [--scene-seeds 10 11 ...] [--sizes 8000 1000] [--json out.json]
+    python bench/bench_track_words.py [--family office|street|replay|kitti] [--scene-seeds 10 11 ...]
+        [--sizes 8000 1000] [--jobs 2] [--json out.json]
 """
 
 from __future__ import annotations
@@ -85,7 +113,7 @@ from bench_place_recognition import loop_truth, pr_curve, two_lap_trajectory  # 
 
 from orbslam_hgcn.datasets import open_sequence  # noqa: E402
 from orbslam_hgcn.features.orb import ORBExtractor  # noqa: E402
-from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence  # noqa: E402
+from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence, street_options, synth_options  # noqa: E402
 from orbslam_hgcn.vocabulary import load_vocabulary  # noqa: E402
 from orbslam_hgcn.vocabulary.loading import SHIPPED  # noqa: E402
 from orbslam_hgcn.vocabulary.track_network import window_words  # noqa: E402
@@ -272,8 +300,10 @@ def arms_by_size(sizes: list[int], arms: list[str], vocab_1000: Path) -> dict[in
 
 # --- figures of one sequence -------------------------------------------------------------
 
-def scores(bows: list, frames: np.ndarray, gt: np.ndarray, min_gap: int) -> dict:
-    """AP, recall@1 and recall at 100% precision of top-1 detections (one sequence).
+def detections(bows: list, frames: np.ndarray, gt: np.ndarray, min_gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Top-1 detections of one sequence: per query keyframe (one with a keyframe at least
+    ``min_gap`` frames older) its best score, whether that match is a true loop, and whether
+    its database holds a true loop (arrays of equal length).
 
     Keyframe i queries the keyframes at least ``min_gap`` frames older, as the keyframe
     database does (:meth:`KeyframeDatabase.query`: L1 score ``sum_w min(q_w, v_w)``, ties to
@@ -293,14 +323,41 @@ def scores(bows: list, frames: np.ndarray, gt: np.ndarray, min_gap: int) -> dict
         s.append(float(sc[j]))
         correct.append(sc[j] > 0 and bool(gt[i, j]))
         eligible.append(bool(gt[i, :added].any()))
-    correct = np.array(correct, bool)
+    return np.array(s, np.float64), np.array(correct, bool), np.array(eligible, bool)
+
+
+def scores(bows: list, frames: np.ndarray, gt: np.ndarray, min_gap: int) -> dict:
+    """AP, recall@1 and recall at 100% precision of top-1 detections (one sequence; the
+    detections of :func:`detections`); ``top1`` the detections' scores and ``top1_true``
+    whether each is a true loop."""
+    s, correct, eligible = detections(bows, frames, gt, min_gap)
     n_pos = int(np.sum(eligible))
-    prec, rec = pr_curve(np.array(s), correct, n_pos)
+    prec, rec = pr_curve(s, correct, n_pos)
     full = prec >= 1.0 - 1e-12
     return {"AP": float(np.sum(np.diff(np.concatenate([[0.0], rec])) * prec)),
             "recall@1": float(correct.sum() / max(n_pos, 1)),
             "recall@P100": float(rec[full].max()) if full.any() else 0.0,
-            "queries": len(s), "with_loop": n_pos}
+            "queries": len(s), "with_loop": n_pos, "top1": s.tolist(), "top1_true": correct.tolist()}
+
+
+def threshold_at_precision(s: np.ndarray, correct: np.ndarray, precision: float) -> float:
+    """The lowest detection score at which the detections scoring at least that much have
+    at least ``precision`` precision (inf when no threshold reaches it)."""
+    order = np.argsort(-s, kind="stable")
+    ss, tp = s[order], np.cumsum(correct[order])
+    # Only cut between distinct scores: a threshold keeps every detection scoring as much.
+    last = np.r_[ss[1:] != ss[:-1], True]
+    prec = tp / np.arange(1, len(ss) + 1)
+    ok = np.flatnonzero(last & (prec >= precision))
+    return float(ss[ok[-1]]) if len(ok) else float("inf")
+
+
+def false_positive_check(s: np.ndarray, threshold: float) -> dict:
+    """Detections of a sequence without a revisit (every detection is false): how many score
+    at least ``threshold``, the highest score and its ratio to the threshold."""
+    top = float(s.max()) if len(s) else 0.0
+    return {"queries": len(s), "false_positives": int(np.sum(s >= threshold)), "threshold": threshold,
+            "max_score": top, "max_over_threshold": top / threshold if np.isfinite(threshold) else 0.0}
 
 
 def effective_size(words: list[np.ndarray]) -> float:
@@ -389,6 +446,31 @@ def describe(seq_dir: Path, cam, extractor: ORBExtractor) -> tuple[list, list, n
     return desc, uv, np.stack(poses), points
 
 
+def _keyframes(name: str, cached: Path, make: Callable[[], tuple], extractor: ORBExtractor, args,
+               frames: np.ndarray | None = None) -> Keyframes:
+    """A sequence's Keyframes from ``make() -> (desc, uv, poses, points)`` (per keyframe), its
+    features, tracks and points kept in ``cached`` (named by the extractor's settings);
+    keyframes at ``frames`` (default: every ``--kf-every`` frames)."""
+    key = hashlib.sha1(f"{FEATURE_CACHE_VERSION} {extractor.config!r}".encode()).hexdigest()[:12]
+    cached = cached.parent / f"{cached.name}_{key}.npz"
+    if cached.exists():
+        with np.load(cached) as z:
+            sizes, tid, poses = z["sizes"], z["tracks"], z["poses"]
+            cut = np.cumsum(sizes)[:-1]
+            desc, uv, points = np.split(z["desc"], cut), np.split(z["uv"], cut), np.split(z["points"], cut)
+    else:
+        desc, uv, poses, points = make()
+        tid = build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(cached, sizes=np.array([len(d) for d in desc]), desc=np.concatenate(desc), uv=np.concatenate(uv),
+                 points=np.concatenate(points), tracks=tid, poses=poses)
+    tracks = np.split(tid, np.cumsum([len(d) for d in desc])[:-1])
+    window = max(1, args.min_gap // args.kf_every)  # keyframes less than min_gap frames older, and itself
+    frames = np.arange(len(desc)) * args.kf_every if frames is None else frames
+    return Keyframes(name, frames, desc, uv, tracks, window, loop_truth(poses, args.dist, args.angle),
+                     poses[:, :3, 3], points)
+
+
 def office_keyframes(cache_dir: Path, seed: int, args, extractor: ORBExtractor) -> Keyframes:
     """Render (or reuse) office ``seed`` with depth at the keyframe rate, and describe it."""
     gt_file = cache_dir / "two_lap_40s_wide.txt"
@@ -399,23 +481,149 @@ def office_keyframes(cache_dir: Path, seed: int, args, extractor: ORBExtractor) 
                         exposure_drift=0.1, seed=seed, depth=True)
     seq_dir = render_sequence(cache_dir / f"office{seed}_two_laps_wide_{rate:g}fps_depth", opts, progress=False,
                               cache=True)
-    # Features, tracks and depth points are kept beside the render, keyed by the extractor's settings.
-    key = hashlib.sha1(f"{FEATURE_CACHE_VERSION} {extractor.config!r}".encode()).hexdigest()[:12]
-    cached = seq_dir / f"keyframes_{key}.npz"
-    if cached.exists():
-        with np.load(cached) as z:
-            sizes, tid, poses = z["sizes"], z["tracks"], z["poses"]
-            cut = np.cumsum(sizes)[:-1]
-            desc, uv, points = np.split(z["desc"], cut), np.split(z["uv"], cut), np.split(z["points"], cut)
-    else:
-        desc, uv, poses, points = describe(seq_dir, opts.camera, extractor)
-        tid = build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
-        np.savez(cached, sizes=np.array([len(d) for d in desc]), desc=np.concatenate(desc), uv=np.concatenate(uv),
-                 points=np.concatenate(points), tracks=tid, poses=poses)
-    tracks = np.split(tid, np.cumsum([len(d) for d in desc])[:-1])
-    window = max(1, args.min_gap // args.kf_every)  # keyframes less than min_gap frames older, and itself
-    return Keyframes(f"office{seed}", np.arange(len(desc)) * args.kf_every, desc, uv, tracks, window,
-                     loop_truth(poses, args.dist, args.angle), poses[:, :3, 3], points)
+    # Features, tracks and depth points are kept beside the render.
+    return _keyframes(f"office{seed}", seq_dir / "keyframes", lambda: describe(seq_dir, opts.camera, extractor),
+                      extractor, args)
+
+
+def replay_keyframes(cache_dir: Path, seed: int, args, extractor: ORBExtractor) -> Keyframes:
+    """The ``fr3_replay_hard`` preset (the real fr3 long-office camera path round a desk,
+    back to its start, in synthetic room ``seed``; motion blur, exposure steps, vignetting,
+    noise, JPEG) with depth at the keyframe rate, its first ``--replay-s`` seconds."""
+    rate = args.fps / args.kf_every
+    opts = synth_options("fr3_replay_hard", scene_seed=seed, seed=seed, fps=rate, depth=True,
+                         duration=args.replay_s)
+    length = "all" if args.replay_s is None else f"{args.replay_s:g}s"
+    seq_dir = render_sequence(cache_dir / f"replay{seed}_fr3_hard_{length}_{rate:g}fps_depth", opts,
+                              progress=False, cache=True)
+    return _keyframes(f"replay{seed}", seq_dir / "keyframes", lambda: describe(seq_dir, opts.camera, extractor),
+                      extractor, args)
+
+
+STREET_SECOND_PASS = {"left": 1.0, "lower": 0.2}  # the second pass: metres left of and below the first
+
+
+def street_passes(seed: int, seconds: float, rate: float):
+    """Street ``seed`` (:func:`~orbslam_hgcn.synth.street.build_street`) and two drives
+    along the same route from the same start: the first on the right-hand lane, the second
+    ``STREET_SECOND_PASS`` metres left of it and lower (another lane, a lower car), with its
+    own pose jitter. Returns (options, scene, first drive, second drive, (N,) frame times
+    of a pass)."""
+    from orbslam_hgcn.synth.street import Drive, PlanarPath, StreetSpec, build_street
+
+    spec = StreetSpec()
+    opts = street_options(scene_seed=seed, seed=seed, fps=rate, duration=seconds, noise=1.5, exposure_drift=0.1,
+                          depth=True, layout="kitti")
+    scene, first = build_street(seed, seconds * spec.speed + 1.0, spec)
+    spec2 = dataclasses.replace(spec, lane_offset=spec.lane_offset - STREET_SECOND_PASS["left"],
+                                camera_height=spec.camera_height - STREET_SECOND_PASS["lower"])
+    path2 = PlanarPath(np.array(scene.layout["corners"]), spec.corner_radius, -spec2.lane_offset)
+    second = Drive(path2, spec2, seed + 1000)
+    return opts, scene, first, second, np.arange(int(round(seconds * rate))) / rate
+
+
+def street_keyframes(cache_dir: Path, seed: int, args, extractor: ORBExtractor) -> Keyframes:
+    """Street ``seed`` driven twice (:func:`street_passes`), KITTI 00's camera, rendered at
+    the keyframe rate with sensor noise and exposure drift (each pass its own); the second
+    pass's keyframes follow the first's."""
+    rate = args.fps / args.kf_every
+
+    def make():
+        from orbslam_hgcn.synth.degrade import Degradations
+        from orbslam_hgcn.synth.sequence import REF_DEPTH, CameraEffects, camera_frame, make_renderer
+
+        opts, scene, first, second, times = street_passes(seed, args.street_s, rate)
+        renderer = make_renderer(scene, opts)  # one renderer: the second pass reuses the first's textures
+        desc, uv, poses, points = [], [], [], []
+        for p, drive in enumerate((first, second)):
+            o = dataclasses.replace(opts, seed=seed + 1000 * p)
+            effects = CameraEffects(o)
+            degrade = Degradations(o, o.camera, float(times[0]), float(times[-1]), REF_DEPTH["street"])
+            for k, t in enumerate(times.tolist()):
+                img, inv_depth = camera_frame(renderer, drive, t, k, o, effects, degrade, grey=True)
+                T = drive(np.array([t]))[0]
+                kps = extractor.extract(img)
+                desc.append(kps.desc)
+                uv.append(np.asarray(kps.uv, np.float32))
+                poses.append(T)
+                points.append(depth_points(kps.uv, inv_depth, o.camera, T))
+        return desc, uv, np.stack(poses), points
+
+    return _keyframes(f"street{seed}", cache_dir / f"street{seed}_two_passes_{args.street_s:g}s_{rate:g}fps" / "keyframes",
+                      make, extractor, args)
+
+
+def depth_points(uv: np.ndarray, inv_depth: np.ndarray, cam, T_wc: np.ndarray) -> np.ndarray:
+    """(N, 3) world points of pixels ``uv`` from an (H, W) inverse depth map (NaN: none)."""
+    u = np.clip(np.rint(uv[:, 0]).astype(int), 0, inv_depth.shape[1] - 1)
+    v = np.clip(np.rint(uv[:, 1]).astype(int), 0, inv_depth.shape[0] - 1)
+    w = inv_depth[v, u].astype(np.float64)
+    z = np.where(w > 0, 1.0 / np.maximum(w, 1e-12), np.nan)
+    pc = np.stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z], 1)
+    return pc @ T_wc[:3, :3].T + T_wc[:3, 3]
+
+
+def map_window(frames: np.ndarray, min_gap: int) -> int:
+    """The most keyframes a track may reach back (itself included) so that every member is
+    less than ``min_gap`` frames older than the keyframe, for keyframes at irregular
+    ``frames``: the fewest keyframes within ``min_gap`` frames over the keyframes at least
+    ``min_gap`` frames into the sequence (all of them when none is)."""
+    lo = np.searchsorted(frames, frames - min_gap, side="right")
+    count = np.arange(len(frames)) - lo + 1
+    later = frames - min_gap >= frames[0]
+    return int(max(1, count[later].min() if later.any() else count.min()))
+
+
+def map_keyframes(map_file: Path, seq_dir: Path, args) -> Keyframes:
+    """The keyframes of a map saved by ``orbslam-hgcn run --save-map`` over the sequence in
+    ``seq_dir`` (any kind :func:`open_sequence` detects): their features in keyframe id order,
+    each feature's track its map point (-1: none), loop truth from the sequence's ground-truth poses at the keyframes' times, frames
+    the keyframes' frame numbers in the sequence; no depth points."""
+    from orbslam_hgcn.map.io import read_header
+
+    a, _ = read_header(map_file)
+    order = np.argsort(a["kf_id"], kind="stable")
+    off = a["kf_feat_offset"]
+    desc = [a["kp_desc"][off[k]:off[k + 1]] for k in order]
+    uv = [np.asarray(a["kp_uv"][off[k]:off[k + 1]], np.float32) for k in order]
+    tracks = [a["kp_point"][off[k]:off[k + 1]].astype(np.int64) for k in order]
+    seq = open_sequence(None, seq_dir)
+    ts = seq.timestamps
+    idx = np.clip(np.searchsorted(ts, a["kf_timestamp"][order]), 1, len(ts) - 1)
+    idx -= (a["kf_timestamp"][order] - ts[idx - 1]) < (ts[idx] - a["kf_timestamp"][order])
+    poses = [seq.pose(int(i)) for i in idx]
+    if any(p is None for p in poses):
+        raise SystemExit(f"bench_track_words: {seq_dir}: no ground-truth pose for every keyframe of {map_file}")
+    frames = idx.astype(np.int64)
+    poses = np.stack(poses)
+    return Keyframes(map_file.stem, frames, desc, uv, tracks, map_window(frames, args.min_gap),
+                     loop_truth(poses, args.dist, args.angle), poses[:, :3, 3],
+                     [np.full((len(d), 3), np.nan) for d in desc])
+
+
+KITTI_DIR = Path(__file__).resolve().parents[2] / "shared/data/kitti00_first160/sequences/00"
+
+
+def kitti_keyframes(cache_dir: Path, args, extractor: ORBExtractor) -> Keyframes:
+    """The real KITTI 00 frames 0-159 (no revisit), a keyframe every ``--kf-every`` frames;
+    no depth (no same-point pairs)."""
+    if not (args.kitti_dir / "image_0").is_dir():
+        raise SystemExit(f"bench_track_words: {args.kitti_dir}: no KITTI image_0 folder (--kitti-dir)")
+    seq = open_sequence("kitti", args.kitti_dir)
+    frames = np.arange(0, len(seq), args.kf_every)
+
+    def make():
+        desc, uv, poses = [], [], []
+        for k in frames.tolist():
+            rec = seq[k]
+            kps = extractor.extract(rec.image)
+            desc.append(kps.desc)
+            uv.append(np.asarray(kps.uv, np.float32))
+            poses.append(rec.T_wc)
+        return desc, uv, np.stack(poses), [np.full((len(d), 3), np.nan) for d in desc]
+
+    return _keyframes("kitti00_0-159", cache_dir / f"kitti00_first{len(seq)}_every{args.kf_every}" / "keyframes",
+                      make, extractor, args, frames=frames)
 
 
 def run_sequence(kfs: Keyframes, vocabs: dict[int, dict], arms: dict[int, list[str]], args) -> dict:
@@ -435,6 +643,12 @@ def run_sequence(kfs: Keyframes, vocabs: dict[int, dict], arms: dict[int, list[s
     return out
 
 
+def _finite_mean(values: list[float]) -> float:
+    """Mean of the finite values (NaN when none: no same-point pairs without depth)."""
+    v = np.asarray(values, np.float64)
+    return float(v[np.isfinite(v)].mean()) if np.isfinite(v).any() else float("nan")
+
+
 def summarise(per_seq: dict[str, dict], arms: dict[int, list[str]]) -> tuple[dict, dict]:
     """Per word count and arm the mean figures; the contrasts (with Holm p)."""
     names = list(per_seq)
@@ -442,7 +656,7 @@ def summarise(per_seq: dict[str, dict], arms: dict[int, list[str]]) -> tuple[dic
     for size in arms:
         for arm in arms[size]:
             rs = [per_seq[n][f"{size} {arm}"] for n in names]
-            means[f"{size} {arm}"] = {k: float(np.nanmean([r[k] for r in rs]))
+            means[f"{size} {arm}"] = {k: _finite_mean([r[k] for r in rs])
                                       for k in ("AP", "recall@1", "recall@P100", "repeatability", "effective_words")}
     rng = np.random.default_rng(0)
     table = {}
@@ -458,7 +672,71 @@ def summarise(per_seq: dict[str, dict], arms: dict[int, list[str]]) -> tuple[dic
     return means, table
 
 
-def record_figures(name: str, means: dict, table: dict, n_sequences: int, load_start: float) -> Path | None:
+# Per family: its default sequences (seeds; the KITTI stretch is one) and settings. The
+# offices' were frozen on validation seeds 0-2; the others were set before their first run.
+FAMILIES: dict[str, dict] = {
+    "office": {"seeds": TEST_SEEDS, "fps": 10.0, "kf_every": 3, "min_gap": 100, "dist": 0.5, "angle": 30.0},
+    "street": {"seeds": list(range(10, 18)), "fps": 10.0, "kf_every": 3, "min_gap": 100, "dist": 4.0, "angle": 30.0},
+    "replay": {"seeds": list(range(10, 16)), "fps": 10.0, "kf_every": 3, "min_gap": 100, "dist": 0.5, "angle": 30.0},
+    "kitti": {"seeds": [0], "fps": 10.0, "kf_every": 3, "min_gap": 30, "dist": 4.0, "angle": 30.0},
+    "map": {"seeds": [], "fps": 10.0, "kf_every": 1, "min_gap": 100, "dist": 0.5, "angle": 30.0},
+}
+SETTINGS = ("fps", "kf_every", "min_gap", "dist", "angle")
+FAMILY_TITLE = {"office": "rendered two-lap offices", "street": "rendered street drives, driven twice",
+                "replay": "hard fr3 replays (the real path round a desk, back to its start)",
+                "map": "saved ORB-tree SLAM maps (the map's keyframes; tracks from its map points)"}
+FP_PRECISION = 0.9  # the KITTI check's threshold: the score that gives this precision on the offices
+
+
+def family_args(args, family: str) -> argparse.Namespace:
+    """``args`` with the family's settings; the options given on the command line override
+    them for ``--family`` itself (the calibration offices of ``kitti`` keep the office ones)."""
+    a = argparse.Namespace(**vars(args))
+    for k in SETTINGS:
+        given = getattr(args, k)
+        setattr(a, k, given if given is not None and family == args.family else FAMILIES[family][k])
+    a.family = family
+    return a
+
+
+def units(args) -> list[tuple[str, int]]:
+    """The sequences of a run as (family, seed): ``kitti`` adds its calibration offices."""
+    if args.family == "map":
+        return [("map", i) for i in range(len(args.maps))]
+    out = [(args.family, seed) for seed in (args.scene_seeds or FAMILIES[args.family]["seeds"])]
+    if args.family == "kitti":
+        out = out[:1] + [("office", seed) for seed in args.calib_seeds]
+    return out
+
+
+def keyframes_of(family: str, seed: int, args, extractor: ORBExtractor) -> Keyframes:
+    a = family_args(args, family)
+    if family == "kitti":
+        return kitti_keyframes(args.cache_dir, a, extractor)
+    if family == "map":
+        map_file, seq_dir = args.maps[seed]
+        return map_keyframes(map_file, seq_dir, a)
+    return {"office": office_keyframes, "street": street_keyframes, "replay": replay_keyframes}[family](
+        args.cache_dir, seed, a, extractor)
+
+
+def kitti_check(kitti: dict, offices: list[dict], arms: dict[int, list[str]]) -> dict:
+    """Per word count and arm the false-positive check of the KITTI stretch: the threshold
+    that gives ``FP_PRECISION`` on the calibration offices' pooled top-1 detections, and
+    :func:`false_positive_check` of the stretch's detections at it."""
+    out = {}
+    for size in arms:
+        for arm in arms[size]:
+            key = f"{size} {arm}"
+            s = np.concatenate([np.asarray(o[key]["top1"], np.float64) for o in offices])
+            c = np.concatenate([np.asarray(o[key]["top1_true"], bool) for o in offices])
+            thr = threshold_at_precision(s, c, FP_PRECISION)
+            out[key] = false_positive_check(np.asarray(kitti[key]["top1"], np.float64), thr)
+    return out
+
+
+def record_figures(name: str, means: dict, table: dict, n_sequences: int, load_start: float,
+                   family: str = "office") -> Path | None:
     """``bench/results/NAME.json`` for the README: per arm and word count the mean figures,
     then every contrast with its CI and Holm p."""
     figs = [(f"{key} AP / R@1 / R@100P / repeat. / eff. words",
@@ -466,9 +744,19 @@ def record_figures(name: str, means: dict, table: dict, n_sequences: int, load_s
              f"{m['effective_words']:.0f}") for key, m in means.items()]
     figs += [(key, f"{c['mean']:+.3f} [{c['ci95'][0]:+.3f}, {c['ci95'][1]:+.3f}], {c['wins']}/{c['losses']}, "
                    f"Holm p {c['holm_p']:.3g}") for key, c in table.items()]
-    return figures.record(name, f"Keyframe words in place recognition: arms over {n_sequences} rendered two-lap "
-                                f"offices (means; paired contrasts with bootstrap 95% CI, wins/losses)", figs,
-                          bench_file=__file__, load_start=load_start)
+    return figures.record(name, f"Keyframe words in place recognition: arms over {n_sequences} "
+                                f"{FAMILY_TITLE[family]} (means; paired contrasts with bootstrap 95% CI, wins/losses)",
+                          figs, bench_file=__file__, load_start=load_start)
+
+
+def record_kitti(name: str, check: dict, n_offices: int, load_start: float) -> Path | None:
+    figs = [(f"{key} false positives / queries, max score / office threshold",
+             f"{c['false_positives']} / {c['queries']}, {c['max_score']:.3f} / {c['threshold']:.3f}")
+            for key, c in check.items()]
+    return figures.record(name, f"Keyframe words on the real KITTI 00 frames 0-159 (no revisit): a false-positive "
+                                f"check, not AP. Per arm the top-1 detections scoring at least the threshold that "
+                                f"gives {FP_PRECISION:.0%} precision on {n_offices} validation offices",
+                          figs, bench_file=__file__, load_start=load_start)
 
 
 _WORKER: dict = {}
@@ -482,27 +770,41 @@ def _init_worker(args) -> None:
     _WORKER.update(args=args, extractor=ORBExtractor(), vocabs=vocabs)
 
 
-def _sequence(seed: int) -> tuple[str, dict]:
+def _sequence(unit: tuple[str, int]) -> tuple[str, dict]:
     args = _WORKER["args"]
-    kfs = office_keyframes(args.cache_dir, seed, args, _WORKER["extractor"])
-    return kfs.name, run_sequence(kfs, _WORKER["vocabs"], args.size_arms, args)
+    kfs = keyframes_of(*unit, args, _WORKER["extractor"])
+    return kfs.name, run_sequence(kfs, _WORKER["vocabs"], args.size_arms, family_args(args, unit[0]))
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cache-dir", type=Path, default=Path("/tmp/orbslam_hgcn_bench"))
-    ap.add_argument("--scene-seeds", type=int, nargs="+", default=TEST_SEEDS,
-                    help="office scene seeds (default: the test seeds 10..29; validation used 0 1 2)")
+    ap.add_argument("--family", choices=list(FAMILIES), default="office",
+                    help="sequences: rendered two-lap offices (default), street drives driven twice, hard fr3 "
+                         "replays, or the real KITTI 00 stretch (a false-positive check)")
+    ap.add_argument("--scene-seeds", type=int, nargs="+", default=None,
+                    help="scene seeds (default: the family's: offices 10..29, validation used 0 1 2; streets "
+                         "10..17; replays 10..15)")
+    ap.add_argument("--calib-seeds", type=int, nargs="+", default=[0, 1, 2],
+                    help="kitti: the office seeds whose detections set each arm's threshold")
     ap.add_argument("--sizes", type=int, nargs="+", choices=(8000, 1000), default=[8000, 1000])
     ap.add_argument("--arms", nargs="+", choices=list(ARMS), default=list(ARMS))
     ap.add_argument("--vocab-1000", type=Path, default=None, help="1000-word vocabularies (default CACHE/vocab1000)")
-    ap.add_argument("--fps", type=float, default=10.0)
-    ap.add_argument("--kf-every", type=int, default=3,
-                    help="a keyframe every this many frames (only those are rendered)")
-    ap.add_argument("--min-gap", type=int, default=100, help="query keyframes at least this many frames older")
-    ap.add_argument("--dist", type=float, default=0.5)
-    ap.add_argument("--angle", type=float, default=30.0)
-    ap.add_argument("--point-tol", type=float, default=0.01, help="same surface point: world points within this (m)")
+    ap.add_argument("--fps", type=float, default=None, help="frame rate the gaps count in (default 10)")
+    ap.add_argument("--kf-every", type=int, default=None,
+                    help="a keyframe every this many frames (only those are rendered; default 3)")
+    ap.add_argument("--min-gap", type=int, default=None,
+                    help="query keyframes at least this many frames older (default 100; kitti 30)")
+    ap.add_argument("--dist", type=float, default=None, help="loop: camera centres within this (m; default 0.5, "
+                                                              "street and kitti 4)")
+    ap.add_argument("--angle", type=float, default=None, help="loop: optical axes within this (degrees; default 30)")
+    ap.add_argument("--street-s", type=float, default=30.0, help="street: seconds of each pass")
+    ap.add_argument("--replay-s", type=float, default=None, help="replay: its first this many seconds (default all)")
+    ap.add_argument("--kitti-dir", type=Path, default=KITTI_DIR)
+    ap.add_argument("--maps", nargs="+", default=[], metavar="MAP.npz=SEQ_DIR",
+                    help="map: maps saved by 'orbslam-hgcn run --vocab orb --save-map', each with its sequence")
+    ap.add_argument("--point-tol", type=float, default=None,
+                    help="same surface point: world points within this (m; default 0.01, street 0.05)")
     ap.add_argument("--threads", type=int, default=1,
                     help="faiss threads (word search is exact: the words do not depend on it; 1 is fastest on a "
                          "busy machine)")
@@ -512,25 +814,52 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--record", metavar="NAME", default=None, help="write bench/results/NAME.json (bench/figures.py)")
     args = ap.parse_args(argv)
+    if args.family == "map":
+        if not args.maps or any("=" not in m for m in args.maps):
+            ap.error("--family map needs --maps MAP.npz=SEQ_DIR ...")
+        args.maps = [tuple(Path(x) for x in m.split("=", 1)) for m in args.maps]
+    if args.point_tol is None:
+        args.point_tol = 0.05 if args.family == "street" else 0.01
     load_start = os.getloadavg()[0]
     faiss.omp_set_num_threads(args.threads)
     t0 = time.perf_counter()
+    todo = units(args)
     if args.prepare_only:
         extractor = ORBExtractor()
-        for seed in args.scene_seeds:
-            office_keyframes(args.cache_dir, seed, args, extractor)
-            print(f"office{seed}: rendered and described ({time.perf_counter() - t0:.0f} s)", flush=True)
+        for family, seed in todo:
+            kfs = keyframes_of(family, seed, args, extractor)
+            print(f"{kfs.name}: rendered and described ({time.perf_counter() - t0:.0f} s)", flush=True)
         return 0
     args.size_arms = arms = arms_by_size(args.sizes, args.arms, args.vocab_1000 or args.cache_dir / "vocab1000")
     per_seq: dict[str, dict] = {}
     with multiprocessing.get_context("spawn").Pool(args.jobs, _init_worker, (args,)) as pool:
-        for name, r in pool.imap(_sequence, args.scene_seeds):
+        for name, r in pool.imap(_sequence, todo):
             per_seq[name] = r
             print(f"{name}: {r['keyframes']} keyframes, {100 * r['features_with_track']:.0f}% of features with a "
-                  f"causal track, {r['same_point_pairs']} same-point pairs", flush=True)
+                  f"causal track, {r['same_point_pairs']} same-point pairs, "
+                  f"{r[f'{args.sizes[0]} {arms[args.sizes[0]][0]}']['with_loop']} queries with a loop", flush=True)
             for size, size_arms in arms.items():
                 print(f"  {size:5d} " + "  ".join(f"{a} {r[f'{size} {a}']['AP']:.3f}/{r[f'{size} {a}']['recall@1']:.3f}"
                                                  for a in size_arms) + "   (AP/R@1)", flush=True)
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(family_args(args, args.family)).items()}
+    if args.family == "kitti":
+        name = next(iter(per_seq))
+        if any(per_seq[name][k]["with_loop"] for k in per_seq[name] if k[:1].isdigit()):
+            raise SystemExit(f"bench_track_words: {name} has a true loop at these settings: not a false-positive check")
+        check = kitti_check(per_seq[name], [per_seq[n] for n in list(per_seq)[1:]], arms)
+        print(f"\nfalse-positive check on {name} (no revisit; not AP): per arm the top-1 detections of its "
+              f"{check[next(iter(check))]['queries']} queries scoring at least the threshold that gives "
+              f"{FP_PRECISION:.0%} precision on the pooled offices {args.calib_seeds}")
+        for key, c in check.items():
+            print(f"  {key:10s} threshold {c['threshold']:.4f}  false positives {c['false_positives']:3d}/{c['queries']}"
+                  f"  max score {c['max_score']:.4f} ({c['max_over_threshold']:.2f} x threshold)")
+        print(f"({time.perf_counter() - t0:.0f} s)")
+        if args.json is not None:
+            args.json.write_text(json.dumps({"settings": settings, "sequences": per_seq, "false_positive_check": check},
+                                            indent=1))
+        if args.record:
+            record_kitti(args.record, check, len(per_seq) - 1, load_start)
+        return 0
     means, table = summarise(per_seq, arms)
     print(f"\nper arm, mean over {len(per_seq)} sequences: AP, recall@1, recall@100%P, same-point word "
           f"repeatability, effective words (exp entropy)")
@@ -543,11 +872,10 @@ def main(argv: list[str] | None = None) -> int:
               f"p {c['wilcoxon_p']:.4f}  Holm {c['holm_p']:.4f}")
     print(f"({time.perf_counter() - t0:.0f} s)")
     if args.json is not None:
-        settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
         args.json.write_text(json.dumps({"settings": settings, "sequences": per_seq, "means": means,
                                          "contrasts": table}, indent=1))
     if args.record:
-        record_figures(args.record, means, table, len(per_seq), load_start)
+        record_figures(args.record, means, table, len(per_seq), load_start, args.family)
     return 0
 
 

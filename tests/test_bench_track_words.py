@@ -200,3 +200,104 @@ def test_recorded_figures(tw, monkeypatch):
     assert got["figs"] == [("8000 A0 AP / R@1 / R@100P / repeat. / eff. words", "0.812 / 0.900 / 0.250 / 0.070 / 7275"),
                            ("8000 B0-A0 AP", "-0.021 [-0.040, +0.001], 3/9, Holm p 0.0312")]
     assert got["bench_file"].endswith("bench_track_words.py")
+
+
+def test_threshold_at_precision(tw):
+    s = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4])
+    c = np.array([True, True, False, True, False, False])
+    # precision from the top: 1, 1, 2/3, 3/4, 3/5, 1/2
+    assert tw.threshold_at_precision(s, c, 0.9) == 0.8
+    assert tw.threshold_at_precision(s, c, 0.7) == 0.6
+    assert tw.threshold_at_precision(s, c, 0.5) == 0.4
+    assert tw.threshold_at_precision(s[::-1], c[::-1], 0.9) == 0.8  # order of the input does not matter
+    # tied scores are kept or dropped together: 0.5 keeps both (2/3), so only 0.9 reaches 90%
+    assert tw.threshold_at_precision(np.array([0.9, 0.5, 0.5]), np.array([True, True, False]), 0.9) == 0.9
+    assert tw.threshold_at_precision(np.array([0.9, 0.5]), np.array([False, True]), 0.9) == math.inf
+
+
+def test_false_positive_check(tw):
+    r = tw.false_positive_check(np.array([0.1, 0.3, 0.25]), 0.25)
+    assert (r["queries"], r["false_positives"]) == (3, 2)
+    assert r["max_score"] == 0.3 and r["max_over_threshold"] == pytest.approx(1.2)
+    none = tw.false_positive_check(np.array([0.1, 0.3]), math.inf)
+    assert none["false_positives"] == 0 and none["max_over_threshold"] == 0.0
+
+
+def test_kitti_check_thresholds_from_the_pooled_offices(tw):
+    # Arm X: pooled office detections 0.9 T, 0.6 T, 0.5 F (from two offices) -> 90% threshold 0.6;
+    # KITTI detections 0.7, 0.55, 0.6 -> 0.7 and 0.6 are false positives.
+    offices = [{"8000 X": {"top1": [0.9, 0.5], "top1_true": [True, False]}},
+               {"8000 X": {"top1": [0.6], "top1_true": [True]}}]
+    kitti = {"8000 X": {"top1": [0.7, 0.55, 0.6]}}
+    r = tw.kitti_check(kitti, offices, {8000: ["X"]})["8000 X"]
+    assert r["threshold"] == 0.6 and r["false_positives"] == 2 and r["max_score"] == 0.7
+
+
+def test_family_settings_and_units(tw):
+    args = tw.argparse.Namespace(family="kitti", scene_seeds=None, calib_seeds=[0, 1], fps=None, kf_every=None,
+                                 min_gap=50, dist=None, angle=None)
+    assert tw.units(args) == [("kitti", 0), ("office", 0), ("office", 1)]
+    k, o = tw.family_args(args, "kitti"), tw.family_args(args, "office")
+    assert (k.min_gap, k.dist, k.kf_every) == (50, 4.0, 3)  # the option given overrides the family's own
+    assert (o.min_gap, o.dist) == (100, 0.5)  # the calibration offices keep the frozen office settings
+    args.family, args.scene_seeds = "street", [5, 6]
+    assert tw.units(args) == [("street", 5), ("street", 6)]
+
+
+def test_street_passes_revisit_the_route(tw):
+    # Two 12 s passes at 10/3 Hz (40 keyframes each): the second drives 1 m left of the first's
+    # path and 0.2 m lower, so at 4 m every second-pass keyframe has a loop in the first pass,
+    # and no keyframe has one in its own pass at the database gap.
+    opts, scene, first, second, times = tw.street_passes(3, 12.0, 10 / 3)
+    assert len(times) == 40 and opts.width == 1241
+    a, b = first(times), second(times)
+    dense = first(np.arange(0.0, 14.0, 0.005))[:, :3, 3]
+    near = dense[np.argmin(np.linalg.norm(dense[None, :, :2] - b[:, None, :2, 3], axis=2), axis=1)]
+    assert np.allclose(np.linalg.norm(near[:, :2] - b[:, :2, 3], axis=1), 1.0, atol=0.05)
+    assert np.allclose(b[:, 2, 3] - near[:, 2], -0.2, atol=0.05)
+    assert np.linalg.norm(np.diff(a[:, :3, 3], axis=0), axis=1).min() > 1.0  # it drives
+    gt = tw.loop_truth(np.concatenate([a, b]), 4.0, 30.0)
+    frames = np.arange(80) * 3
+    far = frames[:, None] - frames[None, :] >= 100
+    cross = np.zeros((80, 80), bool)
+    cross[40:, :40] = True
+    assert not (gt & far & ~cross).any()
+    assert gt[40:, :40].any(1).all()
+
+
+def test_kitti_stretch_has_no_loop_at_the_gap(tw):
+    from orbslam_hgcn.datasets.kitti import read_kitti_poses
+
+    poses = read_kitti_poses(tw.KITTI_DIR.parents[1] / "poses" / "00.txt")[:160:3]
+    f = tw.FAMILIES["kitti"]
+    frames = np.arange(len(poses)) * f["kf_every"]
+    gt = tw.loop_truth(poses, f["dist"], f["angle"])
+    assert not (gt & (frames[:, None] - frames[None, :] >= f["min_gap"])).any()
+    assert gt[np.arange(1, len(poses)), np.arange(len(poses) - 1)].all()  # consecutive keyframes are near
+
+
+def test_depth_points_back_project(tw):
+    from orbslam_hgcn.geometry.camera import PinholeCamera
+
+    cam = PinholeCamera(100.0, 100.0, 50.0, 40.0, 100, 80)
+    inv = np.full((80, 100), 0.5, np.float32)  # 2 m everywhere ...
+    inv[10, 70] = 0.0  # ... but one pixel without depth
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    p = tw.depth_points(np.array([[50.0, 40.0], [60.0, 40.0], [70.0, 10.0]]), inv, cam, T)
+    assert np.allclose(p[0], [1.0, 2.0, 5.0]) and np.allclose(p[1], [1.2, 2.0, 5.0])
+    assert np.isnan(p[2]).all()
+
+
+def test_map_window_keeps_members_inside_the_gap(tw):
+    # keyframes every 30 frames, gap 100: 120 reaches back to 30 (4 keyframes), never to 0
+    assert tw.map_window(np.array([0, 30, 60, 90, 120, 150, 180]), 100) == 4
+    # a dense stretch does not widen it: 200 has no other keyframe within 100 frames
+    assert tw.map_window(np.array([0, 10, 20, 50, 200, 210, 320]), 100) == 1
+    frames = np.sort(np.random.default_rng(1).choice(2000, 300, replace=False))
+    w = tw.map_window(frames, 100)
+    k = np.arange(w - 1, len(frames))
+    assert np.all(frames[k] - frames[k - w + 1] < 100)  # every window is inside the gap ...
+    later = np.flatnonzero(frames - 100 >= frames[0])
+    lo = np.searchsorted(frames, frames[later] - 100, side="right")
+    assert np.any(later - lo + 1 == w)  # ... and one more keyframe would leave it somewhere
