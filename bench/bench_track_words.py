@@ -776,6 +776,17 @@ def _sequence(unit: tuple[str, int]) -> tuple[str, dict]:
     return kfs.name, run_sequence(kfs, _WORKER["vocabs"], args.size_arms, family_args(args, unit[0]))
 
 
+def _plain(value):
+    """A setting as JSON holds it: paths as strings, also inside the (map, sequence) pairs of --maps."""
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cache-dir", type=Path, default=Path("/tmp/orbslam_hgcn_bench"))
@@ -841,7 +852,7 @@ def main(argv: list[str] | None = None) -> int:
             for size, size_arms in arms.items():
                 print(f"  {size:5d} " + "  ".join(f"{a} {r[f'{size} {a}']['AP']:.3f}/{r[f'{size} {a}']['recall@1']:.3f}"
                                                  for a in size_arms) + "   (AP/R@1)", flush=True)
-    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(family_args(args, args.family)).items()}
+    settings = {k: _plain(v) for k, v in vars(family_args(args, args.family)).items()}
     if args.family == "kitti":
         name = next(iter(per_seq))
         if any(per_seq[name][k]["with_loop"] for k in per_seq[name] if k[:1].isdigit()):

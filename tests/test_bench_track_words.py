@@ -301,3 +301,13 @@ def test_map_window_keeps_members_inside_the_gap(tw):
     later = np.flatnonzero(frames - 100 >= frames[0])
     lo = np.searchsorted(frames, frames[later] - 100, side="right")
     assert np.any(later - lo + 1 == w)  # ... and one more keyframe would leave it somewhere
+
+
+def test_settings_of_the_map_family_write_as_json(tw):
+    import json
+
+    pairs = [(Path("/m/office0.npz"), Path("/d/office0")), (Path("/m/office1.npz"), Path("/d/office1"))]
+    settings = {"maps": pairs, "cache_dir": Path("/c"), "sizes": [8000, 1000], "family": "map"}
+    back = json.loads(json.dumps({k: tw._plain(v) for k, v in settings.items()}))
+    assert back["maps"] == [["/m/office0.npz", "/d/office0"], ["/m/office1.npz", "/d/office1"]]
+    assert back["cache_dir"] == "/c" and back["sizes"] == [8000, 1000]
