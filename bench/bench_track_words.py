@@ -84,7 +84,7 @@ depth points, are kept in ``--cache-dir``; ``--prepare-only`` makes them (run a 
 on disjoint seeds), after which a run only computes the arms. ``--json`` writes everything;
 ``--record NAME`` the README's figures (``bench/figures.py``).
 
-    python bench/bench_track_words.py [--family office|street|replay|kitti] [--scene-seeds 10 11 ...]
+    python bench/bench_track_words.py [--family office|street|replay|kitti|map] [--scene-seeds 10 11 ...]
         [--sizes 8000 1000] [--jobs 2] [--json out.json]
 """
 
