@@ -14,6 +14,10 @@ trains, on the training sequence only:
   are much smaller, also at the depth whose 10^L is nearest their word count (say k=10,
   L=3 for about 1000 words).
 
+``--track-mean`` adds the k-means vocabulary with each test descriptor's word taken from its
+causal track mean over the last ``--min-gap`` test images (arm B0 of
+``bench_track_words.py``, here also for SIFT, the paper's float-descriptor case).
+
 Every vocabulary's words feed the TF-IDF cosine BoW detector (``--fabmap``: FAB-MAP 2.0
 as well; ``--centroid``: also each HGCN vocabulary with the words of its class-mean
 centroids instead of its network), scored on the test sequence by recall at 100%
@@ -54,10 +58,12 @@ import numpy as np
 from bench_lcd import WIN, strip_world
 from orbslam_hgcn.config import FabmapConfig, HgcnTrainConfig, ORBConfig
 from orbslam_hgcn.placerec.lcd import WordData, detect, quantize_sequences
+from orbslam_hgcn.vocabulary.training.tracks import build_tracks
 from orbslam_hgcn.placerec.metrics import score_detector
 
 log = logging.getLogger("bench_vocab_ablation")
 
+TRACK_MEAN = "k-means track mean"
 HGCN_FIGURES = (
     ("labelled_accuracy", "train"),
     ("validation_accuracy", "val"),
@@ -96,9 +102,41 @@ class Extractor:
 def sequence_tracks(desc: list[np.ndarray], uv: list[np.ndarray]) -> np.ndarray:
     """Track id of every descriptor of one sequence (``tracks.build_tracks``: binary
     descriptors by Hamming distance, float ones by Euclidean distance)."""
-    from orbslam_hgcn.vocabulary.training.tracks import build_tracks
-
     return build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
+
+
+def causal_track_mean_words(vocab, desc: list[np.ndarray], tracks: np.ndarray, window: int) -> list[np.ndarray]:
+    """Per image, the word of each descriptor's causal track mean (arm B0 of
+    ``bench_track_words.py``): the mean, in the vocabulary's PCA space, of its track's members
+    in this image and the ``window - 1`` images before it. A descriptor without a track, or
+    whose track has no other member in the window, keeps its own word.
+
+    desc: per image, the descriptors; tracks: (sum N_i,) track ids (-1: none), a track holding
+    at most one descriptor of an image. With ``window`` at most the detector's minimum gap, a
+    query and the images it is compared with never share a member."""
+    x = [np.asarray(vocab.project(d), np.float64) for d in desc]
+    start = np.concatenate([[0], np.cumsum([len(d) for d in desc])])
+    out = []
+    for k in range(len(desc)):
+        own = tracks[start[k]:start[k + 1]]
+        words = np.asarray(vocab.words_of_points(x[k].astype(np.float32)))
+        has = np.flatnonzero(own >= 0)
+        if len(has):
+            lo = max(0, k - window + 1)
+            tw = tracks[start[lo]:start[k + 1]]
+            keep = np.isin(tw, own[has])
+            ids, inv = np.unique(tw[keep], return_inverse=True)
+            sums = np.zeros((len(ids), x[k].shape[1]))
+            np.add.at(sums, inv, np.concatenate(x[lo:k + 1])[keep])
+            count = np.bincount(inv, minlength=len(ids))
+            pos = np.searchsorted(ids, own[has])
+            mates = has[count[pos] > 1]
+            if len(mates):
+                pos = np.searchsorted(ids, own[mates])
+                words = words.copy()
+                words[mates] = vocab.words_of_points((sums[pos] / count[pos][:, None]).astype(np.float32))
+        out.append(words)
+    return out
 
 
 # --------------------------------------------------------------------------- vocabularies
@@ -183,7 +221,7 @@ def summary_table(runs: list[dict], detectors: list[str]) -> str:
                 auc = [r["scores"][label][det]["auc"] for r in rs]
                 lines.append(f"{feat:<8} {label:<24} {wtxt:>11} {spread(r100):<30} {spread(auc):<30}")
             for label in rs[0]["scores"]:
-                if not label.startswith("HGCN"):
+                if not (label.startswith("HGCN") or label == TRACK_MEAN):
                     continue
                 d100 = [r["scores"][label][det]["r100p"] - r["scores"]["k-means"][det]["r100p"] for r in rs]
                 dauc = [r["scores"][label][det]["auc"] - r["scores"]["k-means"][det]["auc"] for r in rs]
@@ -258,6 +296,10 @@ def main() -> None:
                     help="also score each HGCN vocabulary with centroid words (nearest class mean in PCA "
                          "space, Euclidean) instead of the network's run-time words")
     ap.add_argument("--min-gap", type=int, default=3, help="compare only with images this many frames back")
+    ap.add_argument("--track-mean", action="store_true",
+                    help="also score the k-means vocabulary with each test descriptor's word taken from its "
+                         "causal track mean over the last --min-gap test images (tracks matched between "
+                         "consecutive test images of a pass)")
     ap.add_argument("--hgcn", action="append", default=[], metavar="FIELD=VALUE",
                     help="override an HgcnTrainConfig field of the HGCN and k-means training, e.g. "
                          "--hgcn patience=30 --hgcn epochs=60 (repeatable)")
@@ -287,7 +329,8 @@ def main() -> None:
         for kind in args.features:
             t0 = time.perf_counter()
             tr = [extractors[kind](im) for im in train]
-            te = [extractors[kind](im)[0] for im in test]
+            te_uv = [extractors[kind](im) for im in test]
+            te = [d for d, _ in te_uv]
             t_feat = time.perf_counter() - t0
             t0 = time.perf_counter()
             tracks = sequence_tracks([d for d, _ in tr], [u for _, u in tr]) if need_tracks else None
@@ -299,7 +342,12 @@ def main() -> None:
                   f"{np.mean([len(d) for d in te]):.0f} per test image, features {t_feat:.1f} s"
                   + (f"; {n_tr} tracks hold {100 * share:.1f}% of the training descriptors "
                      f"(mean length {np.sum(tracks >= 0) / max(n_tr, 1):.2f}), {t_tracks:.1f} s" if need_tracks else ""))
+            test_tracks = None
+            if args.track_mean:  # the two passes are matched within each, not across the jump
+                passes = np.repeat([0, 1], [args.frames, len(te) - args.frames])
+                test_tracks = build_tracks(te, [u for _, u in te_uv], passes, progress=False)
             data.append({"seed": seed, "features": kind, "train": tr, "test": te, "gt": gt, "tracks": tracks,
+                         "test_tracks": test_tracks,
                          "track_share": share, "n_desc": n_desc, "n_tracks": n_tr})
     words = args.words or max(100, min(d["n_desc"] for d in data) // args.per_word // 100 * 100)
     print(f"HGCN and k-means vocabularies: {words} words "
@@ -324,6 +372,10 @@ def main() -> None:
             wd = quantize_sequences(desc_list, d["test"], v)
             run["scores"][label] = score_words(wd, d["gt"], args)
             run["n_words"][label] = int(v.n_words)
+            if label == "k-means" and d["test_tracks"] is not None:
+                test_words = causal_track_mean_words(v, d["test"], d["test_tracks"], args.min_gap)
+                run["scores"][TRACK_MEAN] = score_words(WordData(wd.train, test_words, wd.n_words), d["gt"], args)
+                run["n_words"][TRACK_MEAN] = int(v.n_words)
             if label.startswith("HGCN"):
                 run["hgcn_stats"][label] = dict(v.metadata.stats)
                 if args.centroid:

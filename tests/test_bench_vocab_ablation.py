@@ -1,0 +1,50 @@
+"""The vocabulary ablation bench's causal track-mean words on hand-made inputs with known
+answers: the window, causality and lone descriptors."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+@pytest.fixture(scope="module")
+def va():
+    sys.path.insert(0, str(BENCH))
+    spec = importlib.util.spec_from_file_location("bench_vocab_ablation", BENCH / "bench_vocab_ablation.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["bench_vocab_ablation"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+class LineVocab:
+    """Words of a 1-D PCA space: the descriptor's first value, word = its rounded value."""
+
+    def project(self, desc):
+        return np.asarray(desc, np.float64)[:, :1]
+
+    def words_of_points(self, x):
+        return np.rint(np.asarray(x)[:, 0]).astype(np.int32)
+
+
+def test_track_mean_words_window_causality_and_lone_descriptors(va):
+    # Four images of two descriptors; track 7 runs through all four (values 0, 2, 4, 9), track
+    # 8 is in images 2 and 3 only; each image's second descriptor in images 0, 1 has no track.
+    desc = [np.array([[0.0], [5.0]]), np.array([[2.0], [6.0]]), np.array([[4.0], [10.0]]),
+            np.array([[9.0], [12.0]])]
+    tracks = np.array([7, -1, 7, -1, 7, 8, 7, 8])
+    words = va.causal_track_mean_words(LineVocab(), desc, tracks, window=3)
+    assert words[0].tolist() == [0, 5]  # a track's first member has no mate yet: its own word
+    assert words[1].tolist() == [1, 6]  # mean of 0 and 2; the untracked one keeps its word
+    assert words[2].tolist() == [2, 10]  # mean of 0, 2, 4; track 8 starts here
+    assert words[3].tolist() == [5, 11]  # window 3: 2, 4, 9 (not 0) -> 5; track 8: 10, 12 -> 11
+    # Causality: an image's words do not change when later images are added.
+    short = va.causal_track_mean_words(LineVocab(), desc[:2], tracks[:4], window=3)
+    assert [w.tolist() for w in short] == [w.tolist() for w in words[:2]]
+    # Window 1: every descriptor alone, the lone words.
+    alone = va.causal_track_mean_words(LineVocab(), desc, tracks, window=1)
+    assert [w.tolist() for w in alone] == [[0, 5], [2, 6], [4, 10], [9, 12]]
