@@ -205,6 +205,15 @@ def spread(values: list[float]) -> str:
     return f"{pct(float(np.median(v)))} [{' '.join(pct(x).strip() for x in v)}]"
 
 
+def paired(diffs: list[float], resamples: int = 10000) -> str:
+    """Mean of paired differences (points) with a bootstrap 95% interval over the seeds
+    (fixed resampling seed) and wins/losses."""
+    d = 100 * np.asarray(diffs, np.float64)
+    boot = d[np.random.default_rng(0).integers(0, len(d), (resamples, len(d)))].mean(axis=1)
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    return f"mean {d.mean():+.1f} [{lo:+.1f}, {hi:+.1f}] {int((d > 0).sum())}/{int((d < 0).sum())}"
+
+
 def summary_table(runs: list[dict], detectors: list[str]) -> str:
     lines = []
     for det in detectors:
@@ -227,6 +236,7 @@ def summary_table(runs: list[dict], detectors: list[str]) -> str:
                 dauc = [r["scores"][label][det]["auc"] - r["scores"]["k-means"][det]["auc"] for r in rs]
                 lines.append(f"{feat:<8} {label + ' - k-means':<36} R@100P {' '.join(f'{100 * d:+.1f}' for d in d100)}"
                              f"   AUC {' '.join(f'{100 * d:+.1f}' for d in dauc)}  (per seed, points)")
+                lines.append(f"{'':<8} {'':<36} R@100P {paired(d100)}   AUC {paired(dauc)}")
         lines.append("")
     return "\n".join(lines)
 

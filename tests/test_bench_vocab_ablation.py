@@ -48,3 +48,12 @@ def test_track_mean_words_window_causality_and_lone_descriptors(va):
     # Window 1: every descriptor alone, the lone words.
     alone = va.causal_track_mean_words(LineVocab(), desc, tracks, window=1)
     assert [w.tolist() for w in alone] == [[0, 5], [2, 6], [4, 10], [9, 12]]
+
+
+def test_paired_mean_interval_and_wins(va):
+    # Differences 0.01, 0.02, 0.03 (1, 2, 3 points): mean +2.0, every resample inside [1, 3].
+    txt = va.paired([0.01, 0.02, 0.03])
+    mean, rest = txt.split(" [")
+    lo, hi = (float(x) for x in rest.split("]")[0].split(", "))
+    assert mean == "mean +2.0" and 1.0 <= lo < 2.0 < hi <= 3.0 and txt.endswith("3/0")
+    assert va.paired([0.0, -0.05, 0.05]).endswith("1/1")
