@@ -737,25 +737,38 @@ def kitti_check(kitti: dict, offices: list[dict], arms: dict[int, list[str]]) ->
 
 def record_figures(name: str, means: dict, table: dict, n_sequences: int, load_start: float,
                    family: str = "office") -> Path | None:
-    """``bench/results/NAME.json`` for the README: per arm and word count the mean figures,
-    then every contrast with its CI and Holm p."""
-    figs = [(f"{key} AP / R@1 / R@100P / repeat. / eff. words",
-             f"{m['AP']:.3f} / {m['recall@1']:.3f} / {m['recall@P100']:.3f} / {m['repeatability']:.3f} / "
-             f"{m['effective_words']:.0f}") for key, m in means.items()]
-    figs += [(key, f"{c['mean']:+.3f} [{c['ci95'][0]:+.3f}, {c['ci95'][1]:+.3f}], {c['wins']}/{c['losses']}, "
-                   f"Holm p {c['holm_p']:.3g}") for key, c in table.items()]
+    """``bench/results/NAME.json`` for the README, short: per word count the arms' mean AP
+    and recall@1, and the AP contrasts with their CI, wins/losses and Holm p (the other
+    figures are in ``--json``)."""
+    sizes = list(dict.fromkeys(key.split()[0] for key in means))
+    figs = []
+    for size in sizes:
+        arms = {key.split(" ", 1)[1]: m for key, m in means.items() if key.split()[0] == size}
+        figs.append((f"{size} words, AP", ", ".join(f"{a} {m['AP']:.3f}" for a, m in arms.items())))
+        figs.append((f"{size} words, recall@1", ", ".join(f"{a} {m['recall@1']:.3f}" for a, m in arms.items())))
+        contrasts = [f"{key.split()[1]} {c['mean']:+.3f} [{c['ci95'][0]:+.3f}, {c['ci95'][1]:+.3f}] "
+                     f"{c['wins']}/{c['losses']} Holm p {c['holm_p']:.2g}"
+                     for key, c in table.items() if key.split()[0] == size and key.endswith(" AP")]
+        if contrasts:
+            figs.append((f"{size} words, AP contrasts", "; ".join(contrasts)))
     return figures.record(name, f"Keyframe words in place recognition: arms over {n_sequences} "
-                                f"{FAMILY_TITLE[family]} (means; paired contrasts with bootstrap 95% CI, wins/losses)",
+                                f"{FAMILY_TITLE[family]} (means; paired contrasts with bootstrap 95% CI, "
+                                f"wins/losses; the rest in --json)",
                           figs, bench_file=__file__, load_start=load_start)
 
 
 def record_kitti(name: str, check: dict, n_offices: int, load_start: float) -> Path | None:
-    figs = [(f"{key} false positives / queries, max score / office threshold",
-             f"{c['false_positives']} / {c['queries']}, {c['max_score']:.3f} / {c['threshold']:.3f}")
-            for key, c in check.items()]
+    sizes = list(dict.fromkeys(key.split()[0] for key in check))
+    figs = []
+    for size in sizes:
+        arms = {key.split(" ", 1)[1]: c for key, c in check.items() if key.split()[0] == size}
+        queries = next(iter(arms.values()))["queries"]
+        figs.append((f"{size} words, false positives of {queries} queries",
+                     ", ".join(f"{a} {c['false_positives']}" for a, c in arms.items())))
     return figures.record(name, f"Keyframe words on the real KITTI 00 frames 0-159 (no revisit): a false-positive "
                                 f"check, not AP. Per arm the top-1 detections scoring at least the threshold that "
-                                f"gives {FP_PRECISION:.0%} precision on {n_offices} validation offices",
+                                f"gives {FP_PRECISION:.0%} precision on {n_offices} validation offices "
+                                f"(thresholds and scores in --json)",
                           figs, bench_file=__file__, load_start=load_start)
 
 

@@ -192,14 +192,30 @@ def test_scores_agree_with_the_keyframe_database(tw):
 def test_recorded_figures(tw, monkeypatch):
     got = {}
     monkeypatch.setattr(tw.figures, "record", lambda name, title, figs, **kw: got.update(name=name, figs=figs, **kw))
-    means = {"8000 A0": {"AP": 0.8123, "recall@1": 0.9, "recall@P100": 0.25, "repeatability": 0.07,
-                         "effective_words": 7275.4}}
-    table = {"8000 B0-A0 AP": {"mean": -0.0212, "ci95": [-0.04, 0.001], "wins": 3, "losses": 9, "holm_p": 0.0312}}
+    arm = {"recall@P100": 0.25, "repeatability": 0.07, "effective_words": 7275.4}
+    means = {"8000 A0": {"AP": 0.8123, "recall@1": 0.9, **arm}, "8000 B0": {"AP": 0.79, "recall@1": 0.88, **arm},
+             "1000 A0": {"AP": 0.5, "recall@1": 0.6, **arm}}
+    table = {"8000 B0-A0 AP": {"mean": -0.0212, "ci95": [-0.04, 0.001], "wins": 3, "losses": 9, "holm_p": 0.0312},
+             "8000 B0-A0 recall@1": {"mean": 0.01, "ci95": [0.0, 0.02], "wins": 5, "losses": 1, "holm_p": 1.0}}
     tw.record_figures("track_words", means, table, 12, 1.5)
     assert got["name"] == "track_words" and got["load_start"] == 1.5
-    assert got["figs"] == [("8000 A0 AP / R@1 / R@100P / repeat. / eff. words", "0.812 / 0.900 / 0.250 / 0.070 / 7275"),
-                           ("8000 B0-A0 AP", "-0.021 [-0.040, +0.001], 3/9, Holm p 0.0312")]
+    assert got["figs"] == [("8000 words, AP", "A0 0.812, B0 0.790"),
+                           ("8000 words, recall@1", "A0 0.900, B0 0.880"),
+                           ("8000 words, AP contrasts", "B0-A0 -0.021 [-0.040, +0.001] 3/9 Holm p 0.031"),
+                           ("1000 words, AP", "A0 0.500"),
+                           ("1000 words, recall@1", "A0 0.600")]
     assert got["bench_file"].endswith("bench_track_words.py")
+
+
+def test_recorded_kitti_figures(tw, monkeypatch):
+    got = {}
+    monkeypatch.setattr(tw.figures, "record", lambda name, title, figs, **kw: got.update(figs=figs))
+    c = {"queries": 44, "threshold": 0.15, "max_score": 0.2}
+    check = {"8000 A0": {**c, "false_positives": 3}, "8000 orb": {**c, "false_positives": 5},
+             "1000 A0": {**c, "false_positives": 0}}
+    tw.record_kitti("track_words_kitti", check, 3, 1.0)
+    assert got["figs"] == [("8000 words, false positives of 44 queries", "A0 3, orb 5"),
+                           ("1000 words, false positives of 44 queries", "A0 0")]
 
 
 def test_threshold_at_precision(tw):
