@@ -26,6 +26,23 @@ SUITE_BUDGET_S = float(os.environ.get("ORBSLAM_HGCN_TEST_BUDGET_S", 1200))
 REPLAY_GT = Path(__file__).resolve().parent / "data" / "tum_fr3_long_office_household_groundtruth.txt"
 
 
+def load_bench(name: str):
+    """The module of ``bench/NAME.py``, importable by its siblings (the bench folder goes on
+    ``sys.path``, the module into ``sys.modules`` under NAME), for tests of a bench's
+    arithmetic."""
+    import importlib.util
+    import sys
+
+    bench = REPO / "bench"
+    if str(bench) not in sys.path:
+        sys.path.insert(0, str(bench))
+    spec = importlib.util.spec_from_file_location(name, bench / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
 @functools.lru_cache(maxsize=None)
 def stand_in(name: str) -> Path:
     """A synthetic stand-in for a real sample, rendered once per session in the TUM layout

@@ -2,27 +2,19 @@
 Holm's adjustment, the paired contrast, the per-sequence scores, the causal track members,
 ORB-SLAM's distinctive descriptor, the track-mean words and the mechanism figures."""
 
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import load_bench
 
 from orbslam_hgcn.vocabulary.bow import BowVector
-
-BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 
 @pytest.fixture(scope="module")
 def tw():
-    sys.path.insert(0, str(BENCH))
-    spec = importlib.util.spec_from_file_location("bench_track_words", BENCH / "bench_track_words.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_track_words"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("bench_track_words")
 
 
 def test_holm_steps_down_monotone_and_caps(tw):

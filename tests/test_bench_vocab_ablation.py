@@ -1,24 +1,14 @@
 """The vocabulary ablation bench's causal track-mean words on hand-made inputs with known
 answers: the window, causality and lone descriptors."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+from conftest import load_bench
 
 
 @pytest.fixture(scope="module")
 def va():
-    sys.path.insert(0, str(BENCH))
-    spec = importlib.util.spec_from_file_location("bench_vocab_ablation", BENCH / "bench_vocab_ablation.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_vocab_ablation"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("bench_vocab_ablation")
 
 
 class LineVocab:
