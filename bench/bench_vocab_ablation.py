@@ -105,21 +105,22 @@ def sequence_tracks(desc: list[np.ndarray], uv: list[np.ndarray]) -> np.ndarray:
     return build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
 
 
-def causal_track_mean_words(vocab, desc: list[np.ndarray], tracks: np.ndarray, window: int) -> list[np.ndarray]:
+def causal_track_mean_words(vocab, desc: list[np.ndarray], lone_words: list[np.ndarray], tracks: np.ndarray,
+                            window: int) -> list[np.ndarray]:
     """Per image, the word of each descriptor's causal track mean (arm B0 of
     ``bench_track_words.py``): the mean, in the vocabulary's PCA space, of its track's members
     in this image and the ``window - 1`` images before it. A descriptor without a track, or
     whose track has no other member in the window, keeps its own word.
 
-    desc: per image, the descriptors; tracks: (sum N_i,) track ids (-1: none), a track holding
-    at most one descriptor of an image. With ``window`` at most the detector's minimum gap, a
+    desc: per image, the descriptors; lone_words: per image, their own words under ``vocab``;
+    tracks: (sum N_i,) track ids (-1: none), a track holding at most one descriptor of an image. With ``window`` at most the detector's minimum gap, a
     query and the images it is compared with never share a member."""
     x = [np.asarray(vocab.project(d), np.float64) for d in desc]
     start = np.concatenate([[0], np.cumsum([len(d) for d in desc])])
     out = []
     for k in range(len(desc)):
         own = tracks[start[k]:start[k + 1]]
-        words = np.asarray(vocab.words_of_points(x[k].astype(np.float32)))
+        words = lone_words[k]
         has = np.flatnonzero(own >= 0)
         if len(has):
             lo = max(0, k - window + 1)
@@ -133,7 +134,7 @@ def causal_track_mean_words(vocab, desc: list[np.ndarray], tracks: np.ndarray, w
             mates = has[count[pos] > 1]
             if len(mates):
                 pos = np.searchsorted(ids, own[mates])
-                words = words.copy()
+                words = np.array(words, copy=True)
                 words[mates] = vocab.words_of_points((sums[pos] / count[pos][:, None]).astype(np.float32))
         out.append(words)
     return out
@@ -383,7 +384,7 @@ def main() -> None:
             run["scores"][label] = score_words(wd, d["gt"], args)
             run["n_words"][label] = int(v.n_words)
             if label == "k-means" and d["test_tracks"] is not None:
-                test_words = causal_track_mean_words(v, d["test"], d["test_tracks"], args.min_gap)
+                test_words = causal_track_mean_words(v, d["test"], wd.test, d["test_tracks"], args.min_gap)
                 run["scores"][TRACK_MEAN] = score_words(WordData(wd.train, test_words, wd.n_words), d["gt"], args)
                 run["n_words"][TRACK_MEAN] = int(v.n_words)
             if label.startswith("HGCN"):
