@@ -33,6 +33,7 @@ from orbslam_hgcn.match.matching import (
     search_for_initialization,
     search_for_triangulation,
 )
+from orbslam_hgcn.vocabulary.bow import FeatureVector
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TUM = DATA / "tum_fr3_long_office_household_sample"
@@ -146,8 +147,8 @@ def bench_matchers(repeats: int) -> None:
     report("search_by_projection local map (r 4)", w, c, f"matches {(m >= 0).sum()}")
     nodes1 = rng.integers(0, 300, len(k1))
     nodes2 = rng.integers(0, 300, len(k2))
-    fv1 = {int(n): np.flatnonzero(nodes1 == n) for n in np.unique(nodes1)}
-    fv2 = {int(n): np.flatnonzero(nodes2 == n) for n in np.unique(nodes2)}
+    fv1 = FeatureVector.from_nodes(nodes1)
+    fv2 = FeatureVector.from_nodes(nodes2)
     w, c, m = timed(lambda: search_by_bow(fv1, fv2, k1.desc, k2.desc, k1.angle, k2.angle), repeats)
     report("search_by_bow (300 random nodes)", w, c, f"matches {(m >= 0).sum()}")
     T_1w = np.eye(4)

@@ -729,6 +729,12 @@ class ThreadsConfig:
     # scores, quadtree, keypoint objects) hold the GIL; on a thread they contend with
     # tracking and local mapping for it.
     extraction_process: bool = True
+    # Threaded with prefetch, frames not dropped (drop_late off): extraction may run this
+    # many frames ahead of the tracker while it tracks (one while it initialises or
+    # relocalises, when the next frame's extractor may change), so the extraction process
+    # keeps working while the tracker waits for local mapping. Paced runs still start no
+    # frame before its time. On unpaced KITTI 00 runs, 3 against 1: see bench_peer.py.
+    prefetch_frames: int = 3
     # Threaded only: System.run hands frame i to the tracker no earlier than
     # (t_i - t_0) / speed seconds after frame 0, t being the dataset's timestamps, as a
     # camera delivers them (ORB-SLAM's example programs pace datasets the same way). Local
@@ -816,6 +822,9 @@ class ThreadsConfig:
                               f"found {self.library_threads!r}")
         if not (math.isfinite(self.sync_mapping_s) and self.sync_mapping_s >= 0):
             raise ConfigError(f"threads.sync_mapping_s: must be a finite number >= 0 (0: off), found {self.sync_mapping_s!r}")
+        if not (isinstance(self.prefetch_frames, int) and not isinstance(self.prefetch_frames, bool)
+                and self.prefetch_frames >= 1):
+            raise ConfigError(f"threads.prefetch_frames: must be an integer >= 1, found {self.prefetch_frames!r}")
         if self.mapping_sync not in ("each", "due", "points"):
             raise ConfigError(f"threads.mapping_sync: must be each, due or points, found {self.mapping_sync!r}")
         if not (math.isfinite(self.frame_buffer_s) and self.frame_buffer_s >= 0):

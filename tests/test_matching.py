@@ -20,6 +20,7 @@ from orbslam_hgcn.match.matching import (
     search_for_initialization,
     search_for_triangulation,
 )
+from orbslam_hgcn.vocabulary.bow import FeatureVector
 
 
 # --- Hamming distances and the rotation check ------------------------------------------
@@ -178,8 +179,8 @@ def test_search_by_bow_only_matches_within_nodes():
     node1 = rng.integers(0, 20, 200)
     node2 = node1[perm].copy()
     node2[inv[:30]] = (node2[inv[:30]] + 1) % 20  # these true partners sit under another node
-    fv1 = {int(n): np.flatnonzero(node1 == n) for n in np.unique(node1)}
-    fv2 = {int(n): np.flatnonzero(node2 == n) for n in np.unique(node2)}
+    fv1 = FeatureVector.from_nodes(node1)
+    fv2 = FeatureVector.from_nodes(node2)
     i1, i2 = bow_candidate_pairs(fv1, fv2)
     assert np.all(node1[i1] == node2[i2]) and len(i1) == sum(len(fv1[n]) * len(fv2.get(n, [])) for n in fv1)
     match = search_by_bow(fv1, fv2, d1, d2)
@@ -224,7 +225,7 @@ def test_search_for_triangulation_respects_epipolar_constraint():
     correct = [got.get(i, -1) == i for i in range(40, n)]
     assert np.mean(correct) > 0.95
     # Restricting to BoW candidate pairs (each feature alone under its own node) agrees.
-    fv = {i: np.array([i]) for i in range(n)}
+    fv = FeatureVector.from_nodes(np.arange(n))
     pairs_bow = search_for_triangulation(kps1, kps2, F12, e2, pairs=bow_candidate_pairs(fv, fv))
     assert set(map(tuple, pairs_bow.tolist())) <= set(map(tuple, pairs.tolist()))
     assert len(pairs_bow) >= 0.95 * (n - 40)

@@ -32,6 +32,7 @@ from orbslam_hgcn.runtime.locks import TrackingFirstLock, first
 from orbslam_hgcn.runtime.stages import ThreadedStages
 from orbslam_hgcn.runtime.system import Configs, System
 from orbslam_hgcn.runtime.worker import WorkerError
+from orbslam_hgcn.tracking.tracker import TrackingState
 
 from backend_fixtures import drifted_loop, make_scene, perturb_pose
 
@@ -424,6 +425,11 @@ def test_threaded_run_takes_frames_no_faster_than_their_timestamps(seq, speed):
     assert started[-1] >= started[-2] + 0.9
     assert wall < 30.0  # not the minute of the gap
     assert system.stats()["threads"]["speed"] == speed
+    # The run's time without its start-up: from the first frame's extraction to the stages
+    # drained, so it spans the frames' pacing and the one-second wait of the gap.
+    rt = system.stats()["real_time"]
+    assert rt["startup_s"] >= 0.0 and rt["startup_s"] + rt["frames_wall_s"] <= wall
+    assert rt["frames_wall_s"] >= (t[-2] - t[0]) / speed + 0.9
     _assert_nothing_left()
 
 
@@ -459,6 +465,36 @@ def test_a_live_source_behind_its_camera_drops_late_frames_and_counts_them(seq):
     # Behind the clock by then; caught up by the last frame, which is handed out on time.
     assert 0.5 < rt["real_time_factor"] <= 1.0
     _assert_nothing_left()
+
+
+def test_extraction_runs_ahead_of_a_slow_tracker_by_prefetch_frames(seq):
+    """threads.prefetch_frames: while the tracker tracks frame i, the extraction of frames
+    i + 1 .. i + prefetch_frames may start (one frame ahead while it initialises). With a
+    tracker that takes 150 ms more per frame, the extraction of frame i + 2 starts before
+    frame i is tracked with 3, never with 1; the poses are the same."""
+    runs = {}
+    for depth in (1, 3):
+        system = System(seq.camera, _threads(speed=0.0, prefetch_frames=depth), sequential=False)
+        track, ends = system.tracker.track, {}
+
+        def slow_track(frame, track=track, ends=ends):
+            time.sleep(0.15)
+            result = track(frame)
+            ends[frame.id] = time.perf_counter()
+            return result
+
+        system.tracker.track = slow_track
+        system.run(seq, 30, progress=False)
+        started = np.asarray(system.frame_started)
+        tracking = [r.frame_id for r in system.tracker.records if r.state == TrackingState.OK][2:]
+        ahead = [i for i in tracking if i + 2 < 30 and started[i + 2] < ends[i]]
+        runs[depth] = (ahead, tracking, system.camera_trajectory())
+        _assert_nothing_left()
+    assert runs[1][0] == []
+    assert len(runs[3][0]) >= 0.8 * len([i for i in runs[3][1] if i + 2 < 30]), runs[3][0]
+    np.testing.assert_allclose(runs[1][2].poses, runs[3][2].poses, atol=1e-9)
+    with pytest.raises(ConfigError, match="threads.prefetch_frames"):
+        ThreadsConfig(prefetch_frames=0)
 
 
 def test_speed_and_keyframe_wait_must_be_finite_non_negative_numbers(synth_replay_100, tmp_path):

@@ -23,6 +23,7 @@ neighbours only.)
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass
@@ -69,8 +70,13 @@ class KeyframeDatabase:
         if kf_id in self._bows:
             self.erase(kf_id)
         self._bows[kf_id] = bow
+        index = self._index
         for word, weight in zip(bow.words.tolist(), bow.weights.tolist()):
-            self._index.setdefault(word, {})[kf_id] = weight
+            postings = index.get(word)
+            if postings is None:
+                index[word] = {kf_id: weight}
+            else:
+                postings[kf_id] = weight
 
     def erase(self, kf_id: int) -> None:
         """Remove keyframe ``kf_id`` (no effect if absent)."""
@@ -116,25 +122,19 @@ class KeyframeDatabase:
         ``scores`` is the L1 score ``sum_w min(q_w, v_w)`` (equal to DBoW2's
         ``1 - 0.5 |q - v|_1`` for L1-normalised vectors), accumulated over the postings.
         """
-        ids: list[int] = []
-        kf_w: list[float] = []
-        q_w: list[float] = []
-        for word, weight in zip(bow.words.tolist(), bow.weights.tolist()):
-            postings = self._index.get(word)
-            if postings:
-                ids.extend(postings.keys())
-                kf_w.extend(postings.values())
-                q_w.extend([weight] * len(postings))
-        if not ids:
+        index = self._index
+        hits = [(p, q) for p, q in zip(map(index.get, bow.words.tolist()), bow.weights.tolist()) if p]
+        total = sum(len(p) for p, _ in hits)
+        if total == 0:
             empty = np.zeros(0, np.int64)
             return empty, empty, np.zeros(0, np.float64)
-        ids_a = np.asarray(ids, np.int64)
+        # The postings of the query's words one after the other: keyframe, its weight, the query's.
+        ids_a = np.fromiter(itertools.chain.from_iterable(p.keys() for p, _ in hits), np.int64, total)
+        kf_a = np.fromiter(itertools.chain.from_iterable(p.values() for p, _ in hits), np.float64, total)
+        q_a = np.repeat(np.array([q for _, q in hits], np.float64), [len(p) for p, _ in hits])
         if exclude:
             keep = ~np.isin(ids_a, np.fromiter(exclude, np.int64, len(exclude)))
-            ids_a = ids_a[keep]
-            kf_a, q_a = np.asarray(kf_w)[keep], np.asarray(q_w)[keep]
-        else:
-            kf_a, q_a = np.asarray(kf_w), np.asarray(q_w)
+            ids_a, kf_a, q_a = ids_a[keep], kf_a[keep], q_a[keep]
         uniq, inv = np.unique(ids_a, return_inverse=True)
         common = np.bincount(inv, minlength=len(uniq))
         scores = np.bincount(inv, weights=np.minimum(kf_a, q_a), minlength=len(uniq))

@@ -287,6 +287,14 @@ class Map:
             s, ids = self._pts, np.asarray(pids, dtype=np.int64)
             return PointArrays(s.position[ids], s.normal[ids], s.min_dist[ids], s.max_dist[ids], s.desc[ids], s.bad[ids])
 
+    def point_counters(self, pids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(M,) int64 copies for ``pids`` in one locked gather: times found, times visible,
+        first keyframe, number of observing keyframes."""
+        with self.lock:
+            s, ids = self._pts, np.asarray(pids, dtype=np.int64)
+            n_obs = np.fromiter((len(s.obs[p]) for p in ids.tolist()), np.int64, len(ids))
+            return s.found[ids].astype(np.int64), s.visible[ids].astype(np.int64), s.first_kf[ids].astype(np.int64), n_obs
+
     def bad_points(self, pids: np.ndarray) -> np.ndarray:
         """(M,) bool copy: whether each point of ``pids`` has been discarded."""
         with self.lock:

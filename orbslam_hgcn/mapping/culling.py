@@ -54,10 +54,8 @@ def cull_recent_points(
         return recent, 0
     bad = m.bad_points(recent)
     recent = recent[~bad]
-    views = [m.point(int(p)) for p in recent]
-    found_ratio = np.array([v.found_ratio for v in views])
-    first_kf = np.array([v.first_kf for v in views], dtype=np.int64)
-    n_obs = np.array([v.n_obs for v in views], dtype=np.int64)
+    found, visible, first_kf, n_obs = m.point_counters(recent)
+    found_ratio = found / np.maximum(visible, 1)  # ORB-SLAM GetFoundRatio
     age = current_kf_id - first_kf
     cull = (found_ratio < config.cull_found_ratio) | (
         (age >= config.cull_after_keyframes) & (n_obs <= config.cull_max_obs)

@@ -158,16 +158,8 @@ def bow_candidate_pairs(featvec1: FeatureVector, featvec2: FeatureVector) -> tup
     featvec1, featvec2: node id -> (k,) int feature indices (a FeatureVector).
     Returns ((K,) int64, (K,) int64) indices into image 1 and image 2.
     """
-
-    def flat(fv: FeatureVector) -> tuple[np.ndarray, np.ndarray]:
-        if not fv:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        idx = [np.asarray(v, dtype=np.int64).reshape(-1) for v in fv.values()]
-        nodes = np.repeat(np.fromiter(fv.keys(), dtype=np.int64, count=len(fv)), [len(i) for i in idx])
-        return nodes, np.concatenate(idx)
-
-    n1, f1 = flat(featvec1)
-    n2, f2 = flat(featvec2)
+    n1, f1 = featvec1.flat()
+    n2, f2 = featvec2.flat()
     if len(n1) == 0 or len(n2) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     o2 = np.argsort(n2, kind="stable")

@@ -28,6 +28,7 @@ is raised in the caller's thread as a :class:`~orbslam_hgcn.runtime.worker.Worke
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import math
@@ -226,8 +227,9 @@ class Skipped:
 
 
 class _Prefetch:
-    """Reads frames ahead of tracking and extracts the features of frame i + 1 while frame
-    i is tracked (threaded mode of :meth:`System.run`).
+    """Reads frames ahead of tracking and extracts the features of frames i + 1 .. i +
+    ``depth`` while frame i is tracked (threaded mode of :meth:`System.run`; one frame ahead
+    while the tracker is not tracking).
 
     A reader thread decodes up to ``ahead`` frames in order (one reader: video files need
     it). A frame that cannot be read (a DatasetError: missing, empty, corrupt, wrong size)
@@ -246,17 +248,19 @@ class _Prefetch:
     """
 
     def __init__(
-        self, system: System, sequence: Sequence, n: int, pacer: _Pacer, ahead: int = 4, buffer_s: float = 0.0
+        self, system: System, sequence: Sequence, n: int, pacer: _Pacer, ahead: int = 4, buffer_s: float = 0.0,
+        depth: int = 1,
     ) -> None:
         self.system, self.sequence, self.n, self.pacer = system, sequence, n, pacer
         self.buffer_s = buffer_s
+        self.depth = max(1, min(depth, ahead))
         self._timestamps = np.asarray(sequence.timestamps, dtype=np.float64)
         self._records: queue.Queue = queue.Queue(maxsize=ahead)
         self._stop = threading.Event()
         self._reader = threading.Thread(target=self._read, name="orbslam-reader", daemon=True)
         self._reader.start()
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="orbslam-prefetch")
-        self._next: tuple[int, Future] | None = None
+        self._jobs: collections.deque[tuple[int, Future]] = collections.deque()  # consecutive frames
 
     def _read(self) -> None:
         for i in range(self.n):
@@ -274,7 +278,15 @@ class _Prefetch:
                 return
 
     def _job(self, i: int) -> tuple[FrameRecord, Features] | Skipped:
-        rec, exc = self._records.get()
+        while True:
+            try:
+                rec, exc = self._records.get(timeout=0.05)
+                break
+            except queue.Empty:
+                # The reader ended on an earlier frame's error: that frame's job raises it,
+                # which ends the run; this frame is never read.
+                if not self._reader.is_alive() and self._records.empty():
+                    raise SequenceEnded(f"frame {i} was not read: reading ended before it") from None
         if isinstance(exc, DatasetError):
             return Skipped(i, float(self._timestamps[i]), exc)
         if exc is not None:
@@ -285,33 +297,49 @@ class _Prefetch:
         kps = self.system._extract(rec.image, extractor, remote=True)
         return rec, Features(extractor, kps, t0, 1000.0 * (time.perf_counter() - t0))
 
+    def _get(self, i: int) -> tuple[FrameRecord, Features] | Skipped:
+        """Frame ``i``'s job: the one started ahead, else run here."""
+        if self._jobs and self._jobs[0][0] == i:
+            return self._jobs.popleft()[1].result()
+        return self._job(i)
+
+    def _fill(self, i: int) -> None:
+        """Start the jobs of the frames after ``i``: ``depth`` of them while the tracker
+        tracks (its extractor stays), one while it initialises or relocalises (the
+        extractor may change with the next frame)."""
+        tracking = self.system.tracker.state == TrackingState.OK
+        last = min(self.n - 1, i + (self.depth if tracking else 1))
+        nxt = self._jobs[-1][0] + 1 if self._jobs else i + 1
+        for j in range(nxt, last + 1):
+            self._jobs.append((j, self._pool.submit(self._job, j)))
+
     def take(self, i: int) -> tuple[int, FrameRecord | None, Features | None, list[Skipped]]:
         """The next frame to process, from position ``i`` on: its position, record and
         features, and the frames skipped before it in order (dropped, see the class text,
-        or unreadable); starts on the frame after it. The record is None when frame ``i``
-        is unreadable: the caller decides whether to go on (:meth:`take` of ``i + 1``).
-        Raises SequenceEnded when the sequence ends before ``i``."""
-        job = self._next[1].result() if self._next is not None and self._next[0] == i else self._job(i)
+        or unreadable); starts the jobs of the frames after it. The record is None when
+        frame ``i`` is unreadable: the caller decides whether to go on (:meth:`take` of
+        ``i + 1``). Raises SequenceEnded when the sequence ends before ``i``."""
+        job = self._get(i)
         skipped: list[Skipped] = []
         while True:
             if isinstance(job, Skipped):
                 skipped.append(job)
-                self._next = (i + 1, self._pool.submit(self._job, i + 1)) if i + 1 < self.n else None
+                self._fill(i)
                 return i, None, None, skipped
             rec, features = job
             if not (self.buffer_s > 0 and i + 1 < self.n and self.pacer.delivered(self._timestamps[i] + self.buffer_s)):
                 break
             skipped.append(Skipped(rec.index, rec.timestamp))
             i += 1
-            job = self._job(i)
-        self._next = (i + 1, self._pool.submit(self._job, i + 1)) if i + 1 < self.n else None
+            job = self._get(i)
+        self._fill(i)
         return i, rec, features, skipped
 
     def close(self) -> None:
         self.pacer.halt.set()  # a job waiting for its frame's time goes on at once
-        if self._next is not None:
-            self._next[1].cancel()
-            self._next = None
+        for _, job in self._jobs:
+            job.cancel()
+        self._jobs.clear()
         self._pool.shutdown(wait=True)  # a running job still gets its frame from the reader
         self._stop.set()
         while True:
@@ -401,6 +429,8 @@ class System:
         # would have delivered it; the camera time and wall time the run spanned (s).
         self.lags_ms: list[float] = []
         self._span: tuple[float, float] | None = None  # (first frame's perf_counter, timestamp)
+        # perf_counter when run() started and when it returned (stages drained).
+        self._run_times: tuple[float, float | None] | None = None
         self._last_out: tuple[float, float] | None = None  # (last pose's perf_counter, timestamp)
         self._resume_by: float | None = None  # see run(): the latest a keyframe may hold the tracker
         self._hold_points = False  # see process(): threads.mapping_sync "points" in force
@@ -709,6 +739,7 @@ class System:
         show = self.configs.system.progress if progress is None else progress
         bar = tqdm(total=n, unit="frame", disable=not show, dynamic_ncols=True)
         t0 = time.perf_counter()
+        self._run_times = (t0, None)
         done, stop_reason = 0, None
         threads = self.configs.threads
         # Threaded runs take frames no faster than the camera would deliver them; sequential
@@ -736,7 +767,8 @@ class System:
                     finally:
                         warm.join()
                 buffer_s = threads.frame_buffer_s if threads.drop_late else 0.0
-                prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=buffer_s)
+                depth = 1 if threads.drop_late else threads.prefetch_frames
+                prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=buffer_s, depth=depth)
             if isinstance(stages, ThreadedStages):
                 stages.wait_ready()
             stamps = np.asarray(sequence.timestamps, dtype=np.float64)  # as announced
@@ -812,7 +844,8 @@ class System:
         except BaseException:
             self._close_quietly()
             raise
-        return RunSummary(done, stop_reason is not None, time.perf_counter() - t0, stop_reason)
+        self._run_times = (t0, time.perf_counter())
+        return RunSummary(done, stop_reason is not None, self._run_times[1] - t0, stop_reason)
 
     def _clock_frame(self, pacer: _Pacer, timestamp: float, features: Features | None) -> None:
         """Note when the pose of the frame of ``timestamp`` came out: its lag behind the
@@ -833,10 +866,18 @@ class System:
         pose; below 1 the run fell behind a camera at 1x), ``lag_ms`` (paced runs: per frame,
         from when the camera delivered it to its pose; max and p95 say how far behind real
         time the run fell), ``latency_ms`` (per frame, from the start of its extraction to
-        its pose), frames dropped (only with threads.drop_late)."""
+        its pose), frames dropped (only with threads.drop_late); ``startup_s``, from the
+        start of :meth:`run` to the first frame's extraction (child processes starting), and
+        ``frames_wall_s``, from there to the end of :meth:`run` (its stages drained): the
+        time the run's frames took, without the start-up."""
         rtf = None
         if self._span is not None and self._last_out is not None and self._last_out[1] > self._span[1]:
             rtf = (self._last_out[1] - self._span[1]) / max(self._last_out[0] - self._span[0], 1e-9)
+        startup_s = frames_wall_s = None
+        if self._span is not None and self._run_times is not None:
+            startup_s = max(0.0, self._span[0] - self._run_times[0])
+            if self._run_times[1] is not None:
+                frames_wall_s = self._run_times[1] - self._span[0]
         t = self.configs.threads
         return {
             "speed": 0.0 if self.sequential else t.speed,
@@ -845,6 +886,8 @@ class System:
             "lag_ms": summary_ms(self.lags_ms),
             "latency_ms": summary_ms(self.timings["frame"]),
             "dropped": sum(1 for r in self.tracker.records if r.dropped),
+            "startup_s": startup_s,
+            "frames_wall_s": frames_wall_s,
         }
 
     def _read_frame(self, sequence: Sequence, i: int, stamps: np.ndarray) -> FrameRecord | Skipped:

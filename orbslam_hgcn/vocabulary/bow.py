@@ -127,6 +127,25 @@ class BowVector:
 class FeatureVector(dict):
     """Direct index: vocabulary node id -> (K,) int32 indices of the features under it."""
 
+    _flat: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __setitem__(self, node: int, idx: np.ndarray) -> None:
+        self._flat = None
+        super().__setitem__(node, idx)
+
+    def flat(self) -> tuple[np.ndarray, np.ndarray]:
+        """((K,) int64 node, (K,) int64 feature index): every indexed feature with its node,
+        node after node in the index's order; made once (a keyframe's index is matched
+        against each of its neighbours')."""
+        if self._flat is None:
+            if not self:
+                self._flat = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+            else:
+                idx = [np.asarray(v, dtype=np.int64).reshape(-1) for v in self.values()]
+                nodes = np.repeat(np.fromiter(self.keys(), dtype=np.int64, count=len(self)), [len(i) for i in idx])
+                self._flat = (nodes, np.concatenate(idx))
+        return self._flat
+
     @classmethod
     def from_nodes(cls, nodes: np.ndarray, keep: np.ndarray | None = None) -> FeatureVector:
         """Group feature indices by node.
