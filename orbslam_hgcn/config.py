@@ -733,7 +733,9 @@ class ThreadsConfig:
     # many frames ahead of the tracker while it tracks (one while it initialises or
     # relocalises, when the next frame's extractor may change), so the extraction process
     # keeps working while the tracker waits for local mapping. Paced runs still start no
-    # frame before its time. On unpaced KITTI 00 runs, 3 against 1: see bench_peer.py.
+    # frame before its time. Unpaced KITTI 00, 3 runs each alternated on an idle machine:
+    # 7.4-8.5 s (median 8.3) from the first frame to the end with 3, 8.6-9.6 s (8.8) with
+    # 1, the same poses; an unpaced frame's latency then counts its wait in the queue.
     prefetch_frames: int = 3
     # Threaded only: System.run hands frame i to the tracker no earlier than
     # (t_i - t_0) / speed seconds after frame 0, t being the dataset's timestamps, as a
