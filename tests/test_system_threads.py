@@ -469,12 +469,13 @@ def test_a_live_source_behind_its_camera_drops_late_frames_and_counts_them(seq):
 
 def test_extraction_runs_ahead_of_a_slow_tracker_by_prefetch_frames(seq):
     """threads.prefetch_frames: while the tracker tracks frame i, the extraction of frames
-    i + 1 .. i + prefetch_frames may start (one frame ahead while it initialises). With a
-    tracker that takes 150 ms more per frame, the extraction of frame i + 2 starts before
-    frame i is tracked with 3, never with 1; the poses are the same."""
+    i + 1 .. i + prefetch_frames may start in an unpaced run (one frame ahead while it
+    initialises, and in paced runs). With a tracker that takes 150 ms more per frame, the
+    extraction of frame i + 2 starts before frame i is tracked with 3, never with 1 or in a
+    paced run behind its camera; the poses are the same."""
     runs = {}
-    for depth in (1, 3):
-        system = System(seq.camera, _threads(speed=0.0, prefetch_frames=depth), sequential=False)
+    for key, speed, depth in (("1", 0.0, 1), ("3", 0.0, 3), ("paced", 1.0, 3)):
+        system = System(seq.camera, _threads(speed=speed, prefetch_frames=depth), sequential=False)
         track, ends = system.tracker.track, {}
 
         def slow_track(frame, track=track, ends=ends):
@@ -488,11 +489,11 @@ def test_extraction_runs_ahead_of_a_slow_tracker_by_prefetch_frames(seq):
         started = np.asarray(system.frame_started)
         tracking = [r.frame_id for r in system.tracker.records if r.state == TrackingState.OK][2:]
         ahead = [i for i in tracking if i + 2 < 30 and started[i + 2] < ends[i]]
-        runs[depth] = (ahead, tracking, system.camera_trajectory())
+        runs[key] = (ahead, tracking, system.camera_trajectory())
         _assert_nothing_left()
-    assert runs[1][0] == []
-    assert len(runs[3][0]) >= 0.8 * len([i for i in runs[3][1] if i + 2 < 30]), runs[3][0]
-    np.testing.assert_allclose(runs[1][2].poses, runs[3][2].poses, atol=1e-9)
+    assert runs["1"][0] == [] and runs["paced"][0] == []
+    assert len(runs["3"][0]) >= 0.8 * len([i for i in runs["3"][1] if i + 2 < 30]), runs["3"][0]
+    np.testing.assert_allclose(runs["1"][2].poses, runs["3"][2].poses, atol=1e-9)
     with pytest.raises(ConfigError, match="threads.prefetch_frames"):
         ThreadsConfig(prefetch_frames=0)
 

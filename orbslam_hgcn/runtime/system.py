@@ -767,7 +767,9 @@ class System:
                     finally:
                         warm.join()
                 buffer_s = threads.frame_buffer_s if threads.drop_late else 0.0
-                depth = 1 if threads.drop_late else threads.prefetch_frames
+                # Ahead by more than a frame only unpaced: a paced run behind its camera would
+                # extract frames the tracker cannot take yet, on the cores local mapping needs.
+                depth = threads.prefetch_frames if pacer.speed == 0 and not threads.drop_late else 1
                 prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=buffer_s, depth=depth)
             if isinstance(stages, ThreadedStages):
                 stages.wait_ready()
