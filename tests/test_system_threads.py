@@ -4,11 +4,13 @@ solver giving the in-process results."""
 
 import contextlib
 import dataclasses
+import gc
 import json
 import multiprocessing
 import os
 import threading
 import time
+import weakref
 
 import cv2
 
@@ -472,13 +474,16 @@ def test_extraction_runs_ahead_of_a_slow_tracker_by_prefetch_frames(seq):
     i + 1 .. i + prefetch_frames may start in an unpaced run (one frame ahead while it
     initialises, and in paced runs). With a tracker that takes 150 ms more per frame, the
     extraction of frame i + 2 starts before frame i is tracked with 3, never with 1 or in a
-    paced run behind its camera; the poses are the same."""
+    paced run behind its camera; with 6 (more than the reader's queue of 4 frames) frame
+    i + 5's does. The poses are the same. The objects alive before the first frame are
+    kept from the garbage collector during the run (gc.freeze), and released after it."""
     runs = {}
-    for key, speed, depth in (("1", 0.0, 1), ("3", 0.0, 3), ("paced", 1.0, 3)):
+    for key, speed, depth in (("1", 0.0, 1), ("3", 0.0, 3), ("paced", 1.0, 3), ("6", 0.0, 6)):
         system = System(seq.camera, _threads(speed=speed, prefetch_frames=depth), sequential=False)
-        track, ends = system.tracker.track, {}
+        track, ends, frozen = system.tracker.track, {}, []
 
-        def slow_track(frame, track=track, ends=ends):
+        def slow_track(frame, track=track, ends=ends, frozen=frozen):
+            frozen.append(gc.get_freeze_count() > 0)
             time.sleep(0.15)
             result = track(frame)
             ends[frame.id] = time.perf_counter()
@@ -486,16 +491,43 @@ def test_extraction_runs_ahead_of_a_slow_tracker_by_prefetch_frames(seq):
 
         system.tracker.track = slow_track
         system.run(seq, 30, progress=False)
+        assert all(frozen) and len(frozen) == 30 and gc.get_freeze_count() == 0
         started = np.asarray(system.frame_started)
         tracking = [r.frame_id for r in system.tracker.records if r.state == TrackingState.OK][2:]
-        ahead = [i for i in tracking if i + 2 < 30 and started[i + 2] < ends[i]]
-        runs[key] = (ahead, tracking, system.camera_trajectory())
+        lead = depth - 1 if key == "6" else 2
+        ahead = [i for i in tracking if i + lead < 30 and started[i + lead] < ends[i]]
+        runs[key] = (ahead, [i for i in tracking if i + lead < 30], system.camera_trajectory())
         _assert_nothing_left()
     assert runs["1"][0] == [] and runs["paced"][0] == []
-    assert len(runs["3"][0]) >= 0.8 * len([i for i in runs["3"][1] if i + 2 < 30]), runs["3"][0]
+    for key in ("3", "6"):
+        assert len(runs[key][0]) >= 0.8 * len(runs[key][1]), (key, runs[key][0])
     np.testing.assert_allclose(runs["1"][2].poses, runs["3"][2].poses, atol=1e-9)
+    np.testing.assert_allclose(runs["1"][2].poses, runs["6"][2].poses, atol=1e-9)
     with pytest.raises(ConfigError, match="threads.prefetch_frames"):
         ThreadsConfig(prefetch_frames=0)
+
+
+def test_a_run_leaves_objects_frozen_by_the_caller_frozen(seq):
+    """A caller that froze its own objects (gc.freeze) finds them frozen after a run: an
+    unreachable cycle frozen before the run outlives a collection after it."""
+
+    class Node:
+        pass
+
+    node = Node()
+    node.self = node
+    alive = weakref.ref(node)
+    del node
+    gc.freeze()
+    try:
+        System(seq.camera, _threads(), sequential=False).run(seq, 5, progress=False)
+        gc.collect()
+        assert alive() is not None and gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
+    gc.collect()
+    assert alive() is None
+    _assert_nothing_left()
 
 
 def test_speed_and_keyframe_wait_must_be_finite_non_negative_numbers(synth_replay_100, tmp_path):

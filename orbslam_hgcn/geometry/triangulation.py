@@ -7,9 +7,12 @@ LocalMapping::CreateNewMapPoints use it, solved for all points in one OpenCV cal
 from __future__ import annotations
 
 import logging
+import time
 
 import cv2
 import numpy as np
+
+from orbslam_hgcn.compiled import jit
 
 log = logging.getLogger(__name__)
 
@@ -40,31 +43,6 @@ def triangulate_dlt(P1: np.ndarray, P2: np.ndarray, uv1: np.ndarray, uv2: np.nda
         return (Xh[:3] / Xh[3]).T
 
 
-def parallax_cos(X: np.ndarray, C1: np.ndarray, C2: np.ndarray) -> np.ndarray:
-    """(N,) cosine of the angle at each point X (N, 3) between the rays to centres C1, C2."""
-    a = X - np.asarray(C1).reshape(1, 3)
-    b = X - np.asarray(C2).reshape(1, 3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.sum(a * b, axis=1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
-
-
-def reprojection_sq_error(
-    K: np.ndarray, T_cw: np.ndarray, X_w: np.ndarray, uv: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Squared pixel reprojection errors and depths of points in one camera.
-
-    K: (3, 3); T_cw: (4, 4); X_w: (N, 3); uv: (N, 2). Returns ((N,) squared error,
-    (N,) depth in the camera).
-    """
-    X_c = np.asarray(X_w) @ T_cw[:3, :3].T + T_cw[:3, 3]
-    z = X_c[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = K[0, 0] * X_c[:, 0] / z + K[0, 2]
-        v = K[1, 1] * X_c[:, 1] / z + K[1, 2]
-    e2 = (u - uv[:, 0]) ** 2 + (v - uv[:, 1]) ** 2
-    return np.nan_to_num(e2, nan=np.inf), z
-
-
 def triangulate_checked(
     K1: np.ndarray,
     T_1w: np.ndarray,
@@ -93,28 +71,85 @@ def triangulate_checked(
     n = len(uv1)
     if n == 0:
         return np.zeros((0, 3)), np.zeros(0, dtype=bool)
-    R1, R2 = T_1w[:3, :3], T_2w[:3, :3]
-    C1 = -R1.T @ T_1w[:3, 3]
-    C2 = -R2.T @ T_2w[:3, 3]
-    # Parallax of the viewing rays, from the bearing vectors alone.
-    b1 = np.concatenate([(uv1 - K1[:2, 2]) / np.diag(K1)[:2], np.ones((n, 1))], axis=1) @ R1
-    b2 = np.concatenate([(uv2 - K2[:2, 2]) / np.diag(K2)[:2], np.ones((n, 1))], axis=1) @ R2
-    cos_rays = np.sum(b1 * b2, axis=1) / (np.linalg.norm(b1, axis=1) * np.linalg.norm(b2, axis=1))
     X = triangulate_dlt(projection_matrix(K1, T_1w), projection_matrix(K2, T_2w), uv1, uv2)
-    good = (cos_rays > 0) & (cos_rays < COS_MAX_PARALLAX) & np.all(np.isfinite(X), axis=1)
-    e1, z1 = reprojection_sq_error(K1, T_1w, X, uv1)
-    e2, z2 = reprojection_sq_error(K2, T_2w, X, uv2)
-    with np.errstate(invalid="ignore"):
-        good &= (z1 > 0) & (z2 > 0)
-        good &= e1 <= CHI2_MONO * np.asarray(sigma2_1)
-        good &= e2 <= CHI2_MONO * np.asarray(sigma2_2)
-    if scale1 is not None and scale2 is not None:
-        d1 = np.linalg.norm(X - C1, axis=1)
-        d2 = np.linalg.norm(X - C2, axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio_dist = d2 / d1
-            ratio_octave = np.asarray(scale1, dtype=np.float64) / np.asarray(scale2, dtype=np.float64)
-            factor = 1.5 * scale_factor
-            good &= (d1 > 0) & (d2 > 0)
-            good &= ~((ratio_dist * factor < ratio_octave) | (ratio_dist > ratio_octave * factor))
+    with_scale = scale1 is not None and scale2 is not None
+
+    def per_point(v: object) -> np.ndarray:
+        return np.ascontiguousarray(np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)))
+
+    good = _checks(
+        X, uv1, uv2, np.asarray(K1, np.float64), np.asarray(K2, np.float64),
+        np.asarray(T_1w, np.float64), np.asarray(T_2w, np.float64), per_point(sigma2_1), per_point(sigma2_2),
+        per_point(scale1 if with_scale else 1.0), per_point(scale2 if with_scale else 1.0),
+        with_scale, 1.5 * float(scale_factor),
+    )  # fmt: skip
     return X, good
+
+
+@jit
+def _checks(X, uv1, uv2, K1, K2, T1, T2, sigma2_1, sigma2_2, scale1, scale2, with_scale, factor):
+    """(N,) bool: the tests of :func:`triangulate_checked` on each DLT point ``X``, one
+    point at a time (the rays' parallax from the bearing vectors, depth and reprojection
+    in both cameras, and with ``with_scale`` the distance ratio against the scale ratio
+    within ``factor``)."""
+    n = len(X)
+    good = np.zeros(n, dtype=np.bool_)
+    C1 = np.empty(3)
+    C2 = np.empty(3)
+    for j in range(3):  # camera centres -R^T t
+        C1[j] = -(T1[0, j] * T1[0, 3] + T1[1, j] * T1[1, 3] + T1[2, j] * T1[2, 3])
+        C2[j] = -(T2[0, j] * T2[0, 3] + T2[1, j] * T2[1, 3] + T2[2, j] * T2[2, 3])
+    for i in range(n):
+        x, y, z = X[i, 0], X[i, 1], X[i, 2]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            continue
+        # Bearing vectors in the world frame: the normalised ray (K^-1 x) times R.
+        h1x, h1y = (uv1[i, 0] - K1[0, 2]) / K1[0, 0], (uv1[i, 1] - K1[1, 2]) / K1[1, 1]
+        h2x, h2y = (uv2[i, 0] - K2[0, 2]) / K2[0, 0], (uv2[i, 1] - K2[1, 2]) / K2[1, 1]
+        dot = n1 = n2 = 0.0
+        for j in range(3):
+            a = h1x * T1[0, j] + h1y * T1[1, j] + T1[2, j]
+            b = h2x * T2[0, j] + h2y * T2[1, j] + T2[2, j]
+            dot += a * b
+            n1 += a * a
+            n2 += b * b
+        cos_rays = dot / (np.sqrt(n1) * np.sqrt(n2))
+        if not (cos_rays > 0.0 and cos_rays < COS_MAX_PARALLAX):
+            continue
+        ok = True
+        for T, K, uv, s2 in ((T1, K1, uv1, sigma2_1), (T2, K2, uv2, sigma2_2)):
+            xc = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+            yc = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+            zc = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+            if not zc > 0.0:
+                ok = False
+                break
+            du = K[0, 0] * xc / zc + K[0, 2] - uv[i, 0]
+            dv = K[1, 1] * yc / zc + K[1, 2] - uv[i, 1]
+            if not du * du + dv * dv <= CHI2_MONO * s2[i]:
+                ok = False
+                break
+        if not ok:
+            continue
+        if with_scale:
+            d1 = np.sqrt((x - C1[0]) ** 2 + (y - C1[1]) ** 2 + (z - C1[2]) ** 2)
+            d2 = np.sqrt((x - C2[0]) ** 2 + (y - C2[1]) ** 2 + (z - C2[2]) ** 2)
+            if not (d1 > 0.0 and d2 > 0.0):
+                continue
+            ratio_dist = d2 / d1
+            ratio_octave = scale1[i] / scale2[i]
+            if ratio_dist * factor < ratio_octave or ratio_dist > ratio_octave * factor:
+                continue
+        good[i] = True
+    return good
+
+
+def warm_up() -> float:
+    """Compile (first use after an install) or load from numba's cache the checks of
+    :func:`triangulate_checked`; returns the seconds it took."""
+    t0 = time.perf_counter()
+    K, T2 = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]]), np.eye(4)
+    T2[0, 3] = -0.2
+    uv = np.array([[50.0, 50.0]])
+    triangulate_checked(K, np.eye(4), uv, np.ones(1), K, T2, uv - [[10.0, 0.0]], np.ones(1), np.ones(1), np.ones(1))
+    return time.perf_counter() - t0

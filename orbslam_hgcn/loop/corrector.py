@@ -137,7 +137,7 @@ def search_and_fuse(m: Map, kf_ids: list[int], loop_pids: np.ndarray, config: Lo
             continue
         pids = np.unique(resolve_points(m, loop_pids))
         pids = pids[pids >= 0]
-        pids = pids[~np.isin(pids, kf.point_ids)]
+        pids = pids[~np.isin(pids, kf.point_ids, kind="table")]
         if len(pids) == 0:
             continue
         grid = FeatureGrid(kf.keypoints, kf.camera)

@@ -287,13 +287,12 @@ class Map:
             s, ids = self._pts, np.asarray(pids, dtype=np.int64)
             return PointArrays(s.position[ids], s.normal[ids], s.min_dist[ids], s.max_dist[ids], s.desc[ids], s.bad[ids])
 
-    def point_counters(self, pids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def point_counters(self, pids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(M,) int64 copies for ``pids`` in one locked gather: times found, times visible,
-        first keyframe, number of observing keyframes."""
+        first keyframe."""
         with self.lock:
             s, ids = self._pts, np.asarray(pids, dtype=np.int64)
-            n_obs = np.fromiter((len(s.obs[p]) for p in ids.tolist()), np.int64, len(ids))
-            return s.found[ids].astype(np.int64), s.visible[ids].astype(np.int64), s.first_kf[ids].astype(np.int64), n_obs
+            return s.found[ids].astype(np.int64), s.visible[ids].astype(np.int64), s.first_kf[ids].astype(np.int64)
 
     def bad_points(self, pids: np.ndarray) -> np.ndarray:
         """(M,) bool copy: whether each point of ``pids`` has been discarded."""
@@ -303,7 +302,8 @@ class Map:
     def n_observations(self, pids: np.ndarray) -> np.ndarray:
         """(M,) int64 number of keyframes observing each point."""
         with self.lock:
-            return np.array([len(self._pts.obs[p]) for p in np.asarray(pids, dtype=np.int64)], dtype=np.int64)
+            obs, ids = self._pts.obs, np.asarray(pids, dtype=np.int64).tolist()
+            return np.fromiter((len(obs[p]) for p in ids), np.int64, len(ids))
 
     # --- keyframes ---------------------------------------------------------------------
     def keyframe(self, kf_id: int) -> KeyFrame:

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import itertools
 import logging
+import time
 
 import numpy as np
 
+from orbslam_hgcn.compiled import jit, popcount64
 from orbslam_hgcn.match.hamming import hamming_matrix
 
 log = logging.getLogger(__name__)
@@ -39,21 +41,85 @@ def distinctive_descriptors(desc: np.ndarray, sizes: np.ndarray) -> np.ndarray:
 
     desc: (M, 32) uint8 descriptors of the observations of all points, point after point;
     sizes: (P,) int observations of each point (>= 1, summing to M). Returns (P, 32)
-    uint8. Points with the same number of observations are handled as one array.
+    uint8.
     """
     desc = np.ascontiguousarray(desc, dtype=np.uint8)
-    words = desc.view(np.uint64)  # (M, 4): popcounts of 64-bit words
     sizes = np.asarray(sizes, dtype=np.int64)
-    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    pick = starts.copy()  # row of desc chosen for each point (the first one for n <= 2)
-    for n in np.unique(sizes[sizes > 2]).tolist():
-        pts = np.flatnonzero(sizes == n)
-        rows = starts[pts][:, None] + np.arange(n)  # (m, n)
-        block = words[rows]  # (m, n, 4)
-        D = np.bitwise_count(block[:, :, None, :] ^ block[:, None, :, :]).sum(axis=3, dtype=np.int32)
-        median = np.sort(D, axis=2)[:, :, (n - 1) // 2]  # (m, n)
-        pick[pts] = starts[pts] + np.argmin(median, axis=1)
-    return desc[pick]
+    starts = np.cumsum(sizes) - sizes
+    return desc[_distinctive_rows(desc.view(np.uint64), starts, sizes)]
+
+
+@jit
+def _distinctive_rows(words, starts, sizes):
+    """(P,) row of ``words`` ((M, 4) uint64 descriptors) holding each point's
+    distinctive descriptor: the first row of the least median distance to the point's
+    other rows (the median of the sorted row at index (n - 1) // 2), the first row for
+    points with at most two observations."""
+    pick = starts.copy()
+    for p in range(len(sizes)):
+        n, a = sizes[p], starts[p]
+        if n <= 2:
+            continue
+        D = np.empty((n, n), dtype=np.int64)
+        for i in range(n):
+            D[i, i] = 0
+            for j in range(i + 1, n):
+                d = 0
+                for w in range(words.shape[1]):
+                    d += popcount64(words[a + i, w] ^ words[a + j, w])
+                D[i, j] = d
+                D[j, i] = d
+        best, best_median = 0, np.int64(1) << 40
+        for i in range(n):
+            median = np.sort(D[i])[(n - 1) // 2]
+            if median < best_median:
+                best, best_median = i, median
+        pick[p] = a + best
+    return pick
+
+
+@jit
+def _normals_and_ranges(position, first_row, sizes, centers, level_scale, top_scale, kf_of, ref_kf):
+    """Unit mean viewing direction, max and min distance of each point from its
+    observations (rows first_row[p] .. + sizes[p] of the per-observation arrays: observing
+    centre (T, 3), level scale and top level scale (T,), keyframe id (T,)). The distance
+    range comes from the observation in the reference keyframe ``ref_kf`` (P,), else the
+    first one. The arithmetic runs in numpy's order (each row's norm, the sum over rows),
+    so the results are those of the array form."""
+    P = len(sizes)
+    normal = np.empty((P, 3))
+    dmax = np.empty(P)
+    dmin = np.empty(P)
+    for p in range(P):
+        a, n = first_row[p], sizes[p]
+        x, y, z = position[p, 0], position[p, 1], position[p, 2]
+        sx = sy = sz = 0.0
+        ref = a
+        for r in range(a, a + n):
+            dx, dy, dz = x - centers[r, 0], y - centers[r, 1], z - centers[r, 2]
+            nn = max(np.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+            sx += dx / nn
+            sy += dy / nn
+            sz += dz / nn
+            if kf_of[r] == ref_kf[p]:
+                ref = r
+        nn = max(np.sqrt(sx * sx + sy * sy + sz * sz), 1e-12)
+        normal[p, 0], normal[p, 1], normal[p, 2] = sx / nn, sy / nn, sz / nn
+        dx, dy, dz = x - centers[ref, 0], y - centers[ref, 1], z - centers[ref, 2]
+        dmax[p] = np.sqrt(dx * dx + dy * dy + dz * dz) * level_scale[ref]
+        dmin[p] = dmax[p] / top_scale[ref]
+    return normal, dmax, dmin
+
+
+def warm_up() -> float:
+    """Compile (first use after an install) or load from numba's cache the kernels of
+    :func:`refresh_points`; returns the seconds it took."""
+    t0 = time.perf_counter()
+    words = np.arange(12, dtype=np.uint64).reshape(3, 4)
+    _distinctive_rows(words, np.zeros(1, np.int64), np.array([3], np.int64))
+    one = np.zeros(1, np.int64)
+    _normals_and_ranges(np.ones((1, 3)), one, one + 1, np.zeros((1, 3)), np.ones(1), np.ones(1), one, one)
+    return time.perf_counter() - t0
 
 
 def normal_and_depth(
@@ -124,7 +190,6 @@ def refresh_points(store: PointStore, kfs: dict, pids: np.ndarray, descriptors: 
     kf_of = np.fromiter(itertools.chain.from_iterable(obs), dtype=np.int64, count=total)
     feat_of = np.fromiter(itertools.chain.from_iterable(o.values() for o in obs), dtype=np.int64, count=total)
     first_row = np.cumsum(sizes) - sizes  # first observation of each point
-    rows = np.repeat(np.arange(len(ids)), sizes)
     centers = np.empty((total, 3))
     level_scale = np.empty(total)
     top_scale = np.empty(total)
@@ -141,19 +206,12 @@ def refresh_points(store: PointStore, kfs: dict, pids: np.ndarray, descriptors: 
         top_scale[sel] = kp.scale_factors[-1]
         if descriptors:
             desc[sel] = kp.desc[f]
-    position = s.position[ids]
-    dirs = position[rows] - centers
-    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
-    normal = np.add.reduceat(dirs, first_row, axis=0)
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-    # The observation in the reference keyframe gives the distance range.
-    ref = first_row.copy()
-    is_ref = np.flatnonzero(kf_of == s.ref_kf[ids][rows])
-    ref[rows[is_ref]] = is_ref
-    dmax = np.linalg.norm(position - centers[ref], axis=1) * level_scale[ref]
-    s.normal[ids], s.max_dist[ids], s.min_dist[ids] = normal, dmax, dmax / top_scale[ref]
+    normal, dmax, dmin = _normals_and_ranges(
+        s.position[ids], first_row, sizes, centers, level_scale, top_scale, kf_of, s.ref_kf[ids]
+    )
+    s.normal[ids], s.max_dist[ids], s.min_dist[ids] = normal, dmax, dmin
     if descriptors:
-        s.desc[ids] = distinctive_descriptors(desc, sizes)
+        s.desc[ids] = desc[_distinctive_rows(desc.view(np.uint64), first_row, sizes)]
 
 
 class PointStore:

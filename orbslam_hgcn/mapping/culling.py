@@ -54,7 +54,9 @@ def cull_recent_points(
         return recent, 0
     bad = m.bad_points(recent)
     recent = recent[~bad]
-    found, visible, first_kf, n_obs = m.point_counters(recent)
+    with m.lock:  # one consistent view of the counters
+        found, visible, first_kf = m.point_counters(recent)
+        n_obs = m.n_observations(recent)
     found_ratio = found / np.maximum(visible, 1)  # ORB-SLAM GetFoundRatio
     age = current_kf_id - first_kf
     cull = (found_ratio < config.cull_found_ratio) | (

@@ -45,7 +45,8 @@ def fuse_into(m: Map, kf: KeyFrame, pids: np.ndarray, grid: FeatureGrid, window:
     pids = np.asarray(pids, dtype=np.int64)
     if len(pids) == 0:
         return 0, 0
-    pids = pids[~np.isin(pids, kf.point_ids)]  # already seen by the keyframe
+    # Already seen by the keyframe (ids are dense: a lookup table beats sorting here).
+    pids = pids[~np.isin(pids, kf.point_ids, kind="table")]
     pts = m.point_arrays(pids)
     pids = pids[~pts.bad]
     if len(pids) == 0:

@@ -20,7 +20,7 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
-from orbslam_hgcn.compiled import jit
+from orbslam_hgcn.compiled import jit, popcount64
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.match.grid import FeatureGrid
 from orbslam_hgcn.match.hamming import (
@@ -217,14 +217,6 @@ def _words64(desc: np.ndarray) -> np.ndarray:
 
 
 @jit
-def _popcount64(x):
-    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
-    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
-    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
-    return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
-
-
-@jit
 def _triangulation_candidates(i1, i2, d1, d2, uv1, uv2, oct2, scale2, sigma2_2, F, e, avail1, avail2, n1, th_low):
     """The closest acceptable candidate of every image-1 feature for
     :func:`search_for_triangulation`: ((n1,) position in the candidate arrays or -1,
@@ -237,7 +229,7 @@ def _triangulation_candidates(i1, i2, d1, d2, uv1, uv2, oct2, scale2, sigma2_2, 
             continue
         d = 0
         for w in range(d1.shape[1]):
-            d += _popcount64(d1[a, w] ^ d2[b, w])
+            d += popcount64(d1[a, w] ^ d2[b, w])
         if d > th_low or d >= best[a]:
             continue
         u2, v2 = uv2[b, 0], uv2[b, 1]

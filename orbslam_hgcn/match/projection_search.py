@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from orbslam_hgcn.compiled import jit
+from orbslam_hgcn.compiled import jit, popcount64
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.match.grid import FeatureGrid
@@ -63,14 +63,6 @@ def radius_by_viewing_cos(view_cos: np.ndarray) -> np.ndarray:
 def _words(desc: np.ndarray) -> np.ndarray:
     """(n, 4) uint64 view of (n, 32) uint8 descriptors."""
     return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64)
-
-
-@jit
-def _popcount64(x: np.uint64) -> int:
-    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
-    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
-    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
-    return int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
 
 
 @jit
@@ -114,7 +106,7 @@ def _best_two_in_windows(
                         continue
                 d = 0
                 for w in range(n_words):
-                    d += _popcount64(qdesc[i, w] ^ kdesc[f, w])
+                    d += popcount64(qdesc[i, w] ^ kdesc[f, w])
                 if d < best_d[i]:
                     second_f[i], second_d[i] = best_f[i], best_d[i]
                     best_f[i], best_d[i] = f, d

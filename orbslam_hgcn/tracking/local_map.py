@@ -99,7 +99,7 @@ class LocalMap:
             m.increase_visible(matched)
         cand = self.point_ids
         if len(matched) and len(cand):
-            cand = cand[~np.isin(cand, matched, assume_unique=False)]
+            cand = cand[~np.isin(cand, matched, kind="table")]  # point ids are dense
         if len(cand) == 0:
             return 0
         pts = m.point_arrays(cand)
