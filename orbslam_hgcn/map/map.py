@@ -97,9 +97,14 @@ class Map:
 
     def add_map_point(self, position: np.ndarray, ref_kf_id: int) -> int:
         """New point at (3,) ``position`` created by keyframe ``ref_kf_id``; returns its id."""
+        return int(self.add_map_points(np.reshape(position, (1, 3)), ref_kf_id)[0])
+
+    def add_map_points(self, positions: np.ndarray, ref_kf_id: int) -> np.ndarray:
+        """New points at (K, 3) ``positions`` created by keyframe ``ref_kf_id``; returns
+        their (K,) int64 ids."""
         with self.lock:
             self._good_kf(ref_kf_id)
-            return self._pts.new(position, ref_kf_id, self.map_id)
+            return self._pts.new(positions, ref_kf_id, self.map_id)
 
     # --- observations ------------------------------------------------------------------
     def add_observation(self, kf_id: int, pid: int, idx: int) -> bool:
@@ -238,6 +243,51 @@ class Map:
             s.replaced_by[old] = new
             if refresh:
                 self.update_points(np.array([new]))
+
+    def fuse_points(self, kf_id: int, pids: np.ndarray, idxs: np.ndarray) -> tuple[int, int, list[int]]:
+        """Write the matches of a fusion into keyframe ``kf_id`` (ORB-SLAM ORBmatcher::Fuse),
+        point ``pids[i]`` onto slot ``idxs[i]``, in order: a point that is bad or already
+        seen by the keyframe is skipped; a slot holding another good point merges the two
+        (the point with more observations survives, :meth:`replace_point` without
+        refresh); a free slot gains the observation.
+
+        The shared-point counts of the added observations are applied together before each
+        merge and at the end: the same counts as adding them one by one (covisibility
+        orders do not depend on the order of a keyframe's links). Returns (points merged,
+        observations added, the surviving point of each merge)."""
+        with self.lock:
+            kf, s = self._kfs[int(kf_id)], self._pts
+            merged = added = 0
+            survivors: list[int] = []
+            pending: list[tuple[int, ...]] = []  # keyframes observing each added point before
+
+            def flush() -> None:
+                if pending:
+                    self._bump_shared(kf, Counter(itertools.chain.from_iterable(pending)))
+                    pending.clear()
+
+            try:
+                for pid, idx in zip(np.asarray(pids).tolist(), np.asarray(idxs).tolist()):
+                    if kf.bad or s.bad[pid] or kf.id in s.obs[pid]:
+                        continue
+                    other = int(kf._point_ids[idx])
+                    if other < 0:
+                        pending.append(self._link(kf, pid, idx))
+                        added += 1
+                        continue
+                    if other == pid or s.bad[other]:
+                        continue
+                    flush()
+                    if len(s.obs[other]) > len(s.obs[pid]):
+                        self.replace_point(pid, other, refresh=False)
+                        survivors.append(other)
+                    else:
+                        self.replace_point(other, pid, refresh=False)
+                        survivors.append(pid)
+                    merged += 1
+            finally:
+                flush()
+            return merged, added, survivors
 
     def set_point_positions(self, pids: np.ndarray, positions: np.ndarray) -> None:
         """Write (M, 3) positions of points ``pids``."""

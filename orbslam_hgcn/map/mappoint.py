@@ -251,17 +251,24 @@ class PointStore:
         grow("owner", (), np.int64, 0)  # id of the map holding the point (see map.atlas)
         self.capacity = cap
 
-    def new(self, position: np.ndarray, first_kf: int, owner: int = 0) -> int:
-        if self.n == self.capacity:
-            self._alloc(2 * self.capacity)
-        pid = self.n
-        self.n += 1
-        self.position[pid] = np.asarray(position, dtype=np.float64).reshape(3)
-        self.first_kf[pid] = first_kf
-        self.ref_kf[pid] = first_kf
-        self.owner[pid] = owner
-        self.obs.append({})
-        return pid
+    def new(self, positions: np.ndarray, first_kf: int, owner: int = 0) -> np.ndarray:
+        """New points at (K, 3) ``positions``, made by keyframe ``first_kf``; returns their
+        (K,) int64 ids, consecutive."""
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        k = len(positions)
+        capacity = max(self.capacity, 1)
+        while self.n + k > capacity:
+            capacity *= 2
+        if capacity != self.capacity:
+            self._alloc(capacity)
+        ids = np.arange(self.n, self.n + k, dtype=np.int64)
+        self.n += k
+        self.position[ids] = positions
+        self.first_kf[ids] = first_kf
+        self.ref_kf[ids] = first_kf
+        self.owner[ids] = owner
+        self.obs.extend({} for _ in range(k))
+        return ids
 
     def valid(self, ids: np.ndarray) -> np.ndarray:
         """(M,) bool: ids that exist in the store."""

@@ -47,8 +47,7 @@ def fuse_into(m: Map, kf: KeyFrame, pids: np.ndarray, grid: FeatureGrid, window:
         return 0, 0
     # Already seen by the keyframe (ids are dense: a lookup table beats sorting here).
     pids = pids[~np.isin(pids, kf.point_ids, kind="table")]
-    pts = m.point_arrays(pids)
-    pids = pids[~pts.bad]
+    pids = pids[~m.bad_points(pids)]
     if len(pids) == 0:
         return 0, 0
     pts = m.point_arrays(pids)
@@ -56,30 +55,9 @@ def fuse_into(m: Map, kf: KeyFrame, pids: np.ndarray, grid: FeatureGrid, window:
         kf.keypoints, grid, kf.camera, kf.T_cw, pts.position, pts.desc, pts.normal, pts.min_dist, pts.max_dist, window
     )
     sel = np.flatnonzero(match >= 0)
-    merged = added = 0
-    survivors: list[int] = []  # refreshed once at the end (the matches are already made)
     with m.lock:
-        for pid, idx in zip(pids[sel].tolist(), match[sel].tolist()):
-            if kf.bad or m.point(pid).bad:
-                continue
-            p = m.point(pid)
-            if kf.id in p.observations:
-                continue
-            other = int(kf.point_ids[idx])
-            if other >= 0:
-                if other == pid or m.point(other).bad:
-                    continue
-                if m.point(other).n_obs > p.n_obs:
-                    m.replace_point(pid, other, refresh=False)
-                    survivors.append(other)
-                else:
-                    m.replace_point(other, pid, refresh=False)
-                    survivors.append(pid)
-                merged += 1
-            else:
-                m.add_observation(kf.id, pid, idx)
-                added += 1
-        if survivors:
+        merged, added, survivors = m.fuse_points(kf.id, pids[sel], match[sel])
+        if survivors:  # refreshed once at the end (the matches are already made)
             m.update_points(np.unique(np.array(survivors, dtype=np.int64)))
     return merged, added
 

@@ -127,7 +127,7 @@ def create_new_points(m: Map, kf: KeyFrame, config: LocalMappingConfig) -> np.nd
             # Slots may have been taken by the points of an earlier neighbour.
             free = (kf.point_ids[s1] < 0) & (kf2.point_ids[s2] < 0)
             X, s1, s2 = X[free], s1[free], s2[free]
-            pids = np.array([m.add_map_point(x, kf.id) for x in X], dtype=np.int64)
+            pids = m.add_map_points(X, kf.id)
             m.add_observations(kf.id, pids, s1)
             m.add_observations(kf2.id, pids, s2)
             m.update_points(pids)

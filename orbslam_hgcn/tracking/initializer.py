@@ -211,7 +211,7 @@ class MonocularInitializer:
         with m.lock:
             kf1 = m.add_keyframe(ref)
             kf2 = m.add_keyframe(cur)
-            pids = np.array([m.add_map_point(x, kf1.id) for x in X], dtype=np.int64)
+            pids = m.add_map_points(X, kf1.id)
             m.add_observations(kf1.id, pids, i1)
             m.add_observations(kf2.id, pids, i2)
             m.update_points(pids)
