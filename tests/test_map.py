@@ -162,7 +162,8 @@ def test_add_observations_equals_one_by_one_and_stops_at_a_conflict():
     # Keyframes observing a set of points, counted.
     pids = np.array(sorted(truth)[:40])
     want = Counter(k for p in pids for k in truth[int(p)])
-    assert batch.observer_counts(pids) == want
+    kf_ids, counts = batch.observer_counts(pids)
+    assert dict(zip(kf_ids.tolist(), counts.tolist())) == want and list(kf_ids) == sorted(want)
     # A conflicting pair raises; the pairs before it are linked, with their shared counts.
     k = 0
     free = [i for i in range(N_FEAT) if batch.keyframe(k).point_ids[i] < 0]

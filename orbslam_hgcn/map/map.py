@@ -158,12 +158,14 @@ class Map:
         kf._point_ids[idx] = pid
         return before
 
-    def observer_counts(self, pids: np.ndarray) -> Counter[int]:
-        """{keyframe id: how many of the points ``pids`` it observes}, keyframes in the order
-        the points' observations first name them."""
+    def observer_counts(self, pids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((K,) int64 keyframes observing any of the points ``pids``, ascending; (K,) int64
+        how many of the points each observes)."""
         with self.lock:
-            obs = self._pts.obs
-            return Counter(itertools.chain.from_iterable(obs[p] for p in np.asarray(pids).tolist()))
+            obs, ids = self._pts.obs, np.asarray(pids, dtype=np.int64).tolist()
+            total = sum(map(len, map(obs.__getitem__, ids)))
+            kfs = np.fromiter(itertools.chain.from_iterable(map(obs.__getitem__, ids)), np.int64, total)
+        return np.unique(kfs, return_counts=True)
 
     def erase_observation(self, kf_id: int, pid: int) -> None:
         """Unlink point ``pid`` from keyframe ``kf_id`` (both ends); a point left with too few
@@ -353,7 +355,7 @@ class Map:
         """(M,) int64 number of keyframes observing each point."""
         with self.lock:
             obs, ids = self._pts.obs, np.asarray(pids, dtype=np.int64).tolist()
-            return np.fromiter((len(obs[p]) for p in ids), np.int64, len(ids))
+            return np.fromiter(map(len, map(obs.__getitem__, ids)), np.int64, len(ids))
 
     # --- keyframes ---------------------------------------------------------------------
     def keyframe(self, kf_id: int) -> KeyFrame:

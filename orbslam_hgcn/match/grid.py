@@ -9,6 +9,7 @@ pairs, so matchers never loop over keypoints in Python.
 
 from __future__ import annotations
 
+import functools
 import logging
 
 import numpy as np
@@ -22,10 +23,12 @@ GRID_COLS = 64
 GRID_ROWS = 48
 
 
+@functools.lru_cache(maxsize=64)
 def image_bounds(camera: PinholeCamera) -> tuple[float, float, float, float]:
     """(min_x, max_x, min_y, max_y) of the undistorted image (ORB-SLAM ComputeImageBounds).
 
     Without distortion these are the image borders; otherwise the undistorted corners.
+    Kept per camera: every frame's grid asks.
     """
     if not camera.is_distorted:
         return 0.0, float(camera.width), 0.0, float(camera.height)

@@ -42,13 +42,14 @@ class LocalMap:
         """Select local keyframes and points for ``frame`` (its matches must be fresh);
         returns the reference keyframe id (-1 when the frame has no match)."""
         m, cfg = self.map, self.config
-        counter = m.observer_counts(frame.point_ids[frame.point_ids >= 0])
-        if not counter:
+        kf_ids, counts = m.observer_counts(frame.point_ids[frame.point_ids >= 0])
+        if len(kf_ids) == 0:
             self.kf_ids = np.zeros(0, dtype=np.int64)
             self.point_ids = np.zeros(0, dtype=np.int64)
             self.ref_kf_id = -1
             return -1
-        k1 = [k for k, _ in sorted(counter.items(), key=lambda kv: (-kv[1], kv[0])) if not m.keyframe(k).bad]
+        # Most shared points first, ties by id.
+        k1 = [k for k in kf_ids[np.lexsort((kf_ids, -counts))].tolist() if not m.keyframe(k).bad]
         chosen = list(k1)
         seen = set(k1)
 
