@@ -39,7 +39,6 @@ from orbslam_hgcn.geometry.se3 import inv_S
 from orbslam_hgcn.loop.projection import match_points_in_keyframe
 from orbslam_hgcn.loop.sim3_check import LoopMatch
 from orbslam_hgcn.map import Map
-from orbslam_hgcn.match.grid import FeatureGrid
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +139,7 @@ def search_and_fuse(m: Map, kf_ids: list[int], loop_pids: np.ndarray, config: Lo
         pids = pids[~np.isin(pids, kf.point_ids, kind="table")]
         if len(pids) == 0:
             continue
-        grid = FeatureGrid(kf.keypoints, kf.camera)
+        grid = kf.grid
         found = match_points_in_keyframe(
             m, kf, grid, kf.T_cw, pids, config.fuse_window, min_view_cos=config.min_view_cos
         )

@@ -148,8 +148,8 @@ def search_by_sim3(
     S_21 = np.eye(4)
     S_21[:3, :3] = R.T / s
     S_21[:3, 3] = -R.T @ S_12[:3, 3] / s
-    grid1 = FeatureGrid(kf1.keypoints, kf1.camera)
-    grid2 = FeatureGrid(kf2.keypoints, kf2.camera)
+    grid1 = kf1.grid
+    grid2 = kf2.grid
     to2 = _search_one_way(m, kf1, kf2, grid2, free1, S_21, window)  # (F1,) keypoint of kf2
     to1 = _search_one_way(m, kf2, kf1, grid1, free2, S_12, window)  # (F2,) keypoint of kf1
     back = np.full(len(kf2.keypoints), -1, dtype=np.int64)  # kf2 keypoint -> kf1 keypoint

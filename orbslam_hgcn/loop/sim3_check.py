@@ -32,7 +32,6 @@ from orbslam_hgcn.config import LoopClosingConfig
 from orbslam_hgcn.geometry.sim3 import sim3_ransac
 from orbslam_hgcn.loop.projection import match_points_in_keyframe, search_by_sim3
 from orbslam_hgcn.map import KeyFrame, Map
-from orbslam_hgcn.match.grid import FeatureGrid
 from orbslam_hgcn.match.matching import search_by_bow
 
 log = logging.getLogger(__name__)
@@ -200,7 +199,7 @@ def compute_sim3(
             T_cw[3] = (0.0, 0.0, 0.0, 1.0)
             loop_kf_ids, loop_pids = loop_neighbourhood(m, cand.id)
             search = loop_pids[~np.isin(loop_pids, matched[matched >= 0])]
-            grid = FeatureGrid(kf.keypoints, kf.camera)
+            grid = kf.grid
             found = match_points_in_keyframe(
                 m, kf, grid, T_cw, search, cfg.projection_window,
                 min_view_cos=cfg.min_view_cos, available=matched < 0,

@@ -18,6 +18,7 @@ from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.geometry.se3 import inv_T
 from orbslam_hgcn.map.frame import Frame
+from orbslam_hgcn.match.grid import FeatureGrid
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +56,7 @@ class KeyFrame:
         "first_connection",
         "T_cp",
         "_covis_cache",
+        "_grid",
     )
 
     def __init__(
@@ -91,6 +93,15 @@ class KeyFrame:
         # can still be written for its frames (ORB-SLAM KeyFrame::mTcp).
         self.T_cp: np.ndarray | None = None
         self._covis_cache: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._grid: FeatureGrid | None = None
+
+    @property
+    def grid(self) -> FeatureGrid:
+        """The cell index of the keypoints (built on first use; the keypoints never
+        change): fusion and loop closing search every keyframe's many times."""
+        if self._grid is None:
+            self._grid = FeatureGrid(self.keypoints, self.camera)
+        return self._grid
 
     @classmethod
     def from_frame(cls, frame: Frame, kf_id: int) -> KeyFrame:

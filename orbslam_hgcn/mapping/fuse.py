@@ -77,14 +77,14 @@ def search_in_neighbors(m: Map, kf: KeyFrame, config: LocalMappingConfig) -> dic
             if t.bad:
                 continue
             _, own = kf.observed_points()
-            a, b = fuse_into(m, t, own, FeatureGrid(t.keypoints, t.camera), config.fuse_window)
+            a, b = fuse_into(m, t, own, t.grid, config.fuse_window)
         merged, added = merged + a, added + b
     with m.lock:
         if targets:
             arrays = [m.keyframe(k).point_ids for k in targets if not m.keyframe(k).bad]
             cand = np.concatenate(arrays) if arrays else np.zeros(0, np.int64)
             cand = np.unique(cand[cand >= 0])
-            a, b = fuse_into(m, kf, cand, FeatureGrid(kf.keypoints, kf.camera), config.fuse_window)
+            a, b = fuse_into(m, kf, cand, kf.grid, config.fuse_window)
             merged, added = merged + a, added + b
         _, own = kf.observed_points()
         m.update_points(own)
