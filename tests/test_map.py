@@ -239,18 +239,13 @@ def _fuse_one_by_one(m, kf_id, pids, idxs):
     return merged, added
 
 
-def a_weight(m, a, b):
-    return m.covisibility_weight(a, b)
-
-
 def test_fuse_points_equals_adding_and_merging_one_match_at_a_time():
     """Fusion's write step batches the covisibility counts of the observations it adds;
     the links, counts and merges are those of one match at a time, including a point
     landing on a slot that an earlier match of the same call filled."""
-    maps = [_build(np.random.default_rng(6), n_kf=6, n_pts=500) for _ in range(2)]
-    m, truth = maps[0]
+    (a, truth), (b, _) = (_build(np.random.default_rng(6), n_kf=6, n_pts=500) for _ in range(2))
     k = 5
-    kf = m.keyframe(k)
+    kf = a.keyframe(k)
     free = np.flatnonzero(kf.point_ids < 0)
     held = np.flatnonzero(kf.point_ids >= 0)
     others = [p for p, o in truth.items() if k not in o]
@@ -260,16 +255,14 @@ def test_fuse_points_equals_adding_and_merging_one_match_at_a_time():
     # absorbs it: the count between 5 and 0 passes through zero on the way.
     lone = next(p for p, o in truth.items() if set(o) == {0, 1})
     big = next(p for p, o in truth.items() if len(o) == 4 and not {0, 5} & set(o))
-    assert a_weight(m, 5, 0) == 0
+    assert a.covisibility_weight(5, 0) == 0
     pids = [lone, big, others[1], others[2], others[3], seen[0], others[4], others[0], others[5]]
     idxs = [free[3], free[3], free[0], held[0], free[1], held[1], held[2], free[2], free[0]]
-    results = []
-    for (mm, _), fuse in zip(maps, (lambda *a: maps[0][0].fuse_points(*a)[:2], lambda *a: _fuse_one_by_one(maps[1][0], *a))):
-        results.append(fuse(k, np.array(pids), np.array(idxs)))
-        assert check_invariants(mm) == []
-    assert results[0] == results[1] and results[0][0] >= 3 and results[0][1] >= 2
-    assert a_weight(maps[1][0], 5, 0) > 0  # the absorbed point's observation in 0 moved over
-    a, b = maps[0][0], maps[1][0]
+    got = a.fuse_points(k, np.array(pids), np.array(idxs))[:2]
+    want = _fuse_one_by_one(b, k, pids, idxs)
+    assert check_invariants(a) == [] and check_invariants(b) == []
+    assert got == want and got[0] >= 3 and got[1] >= 2
+    assert b.covisibility_weight(5, 0) > 0  # the absorbed point's observation in 0 moved over
     for p in truth:
         assert a.point(p).bad == b.point(p).bad
         assert a.point(p).observations == b.point(p).observations
