@@ -1,16 +1,17 @@
 """The numba settings of every compiled kernel: the :data:`jit` decorator.
 
-A leaf module: it imports numba and numpy only, and the kernel modules import it. The kernels are
-compiled without the GIL, so other threads run meanwhile, and cached on disk beside their
-modules (or in numba's user cache when the package folder is read-only).
+A leaf module: it imports numba and numpy only, and the kernel modules import it. The
+kernels are compiled without the GIL, so other threads run meanwhile, and cached on disk
+beside their modules (or in numba's user cache when the package folder is read-only).
 
 Two steps of tracking run on every frame over a few hundred points, where numpy's
 per-call overhead on small arrays outweighs the arithmetic: the pose-only optimisation
 (:mod:`orbslam_hgcn.backend.pose_only`) and the window search of projected points
-(:mod:`orbslam_hgcn.match.projection_search`); local mapping's triangulation search and checks
-(:mod:`orbslam_hgcn.match.matching`, :mod:`orbslam_hgcn.geometry.triangulation`), the refresh of map points' viewing ranges and
-descriptors (:mod:`orbslam_hgcn.map.mappoint`) and local BA
-(:mod:`orbslam_hgcn.backend.schur_ba`) are compiled too, as are ORB extraction's FAST detection, quadtree and descriptor loops
+(:mod:`orbslam_hgcn.match.projection_search`). Local mapping's triangulation search and
+checks (:mod:`orbslam_hgcn.match.matching`, :mod:`orbslam_hgcn.geometry.triangulation`),
+the refresh of map points' viewing ranges and descriptors (:mod:`orbslam_hgcn.map.mappoint`)
+and local BA (:mod:`orbslam_hgcn.backend.schur_ba`) are compiled too, as are ORB
+extraction's FAST detection, quadtree and descriptor loops
 (:mod:`orbslam_hgcn.features.fast`, :mod:`~orbslam_hgcn.features.distribute`,
 :mod:`~orbslam_hgcn.features.rbrief`), and the HGCN vocabulary's run-time layers
 (:mod:`orbslam_hgcn.vocabulary.ball`, warmed when a vocabulary with a network is built).
@@ -40,3 +41,9 @@ def popcount64(x):
     x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
     x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
     return int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
+
+
+def descriptor_words(desc: np.ndarray) -> np.ndarray:
+    """(N, 4) uint64 view of (N, 32) uint8 ORB descriptors: the kernels' input for
+    :func:`popcount64`."""
+    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64)

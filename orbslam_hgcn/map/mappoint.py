@@ -211,7 +211,7 @@ def refresh_points(store: PointStore, kfs: dict, pids: np.ndarray, descriptors: 
     )
     s.normal[ids], s.max_dist[ids], s.min_dist[ids] = normal, dmax, dmin
     if descriptors:
-        s.desc[ids] = desc[_distinctive_rows(desc.view(np.uint64), first_row, sizes)]
+        s.desc[ids] = distinctive_descriptors(desc, sizes)
 
 
 class PointStore:

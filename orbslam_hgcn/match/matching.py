@@ -20,7 +20,7 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
-from orbslam_hgcn.compiled import jit, popcount64
+from orbslam_hgcn.compiled import descriptor_words, jit, popcount64
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.match.grid import FeatureGrid
 from orbslam_hgcn.match.hamming import (
@@ -211,11 +211,6 @@ def search_by_bow(
     return match
 
 
-def _words64(desc: np.ndarray) -> np.ndarray:
-    """(N, 4) uint64 view of (N, 32) uint8 descriptors."""
-    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64)
-
-
 @jit
 def _triangulation_candidates(i1, i2, d1, d2, uv1, uv2, oct2, scale2, sigma2_2, F, e, avail1, avail2, n1, th_low):
     """The closest acceptable candidate of every image-1 feature for
@@ -280,7 +275,8 @@ def search_for_triangulation(
     a1 = np.ones(n1, dtype=bool) if avail1 is None else np.ascontiguousarray(avail1, dtype=bool)
     a2 = np.ones(n2, dtype=bool) if avail2 is None else np.ascontiguousarray(avail2, dtype=bool)
     bp, bd = _triangulation_candidates(
-        i1, i2, _words64(kps1.desc), _words64(kps2.desc), kps1.uv, kps2.uv, kps2.octave.astype(np.int64),
+        i1, i2, descriptor_words(kps1.desc), descriptor_words(kps2.desc), kps1.uv, kps2.uv,
+        kps2.octave.astype(np.int64),
         np.asarray(kps2.scale_factors, dtype=np.float64), np.asarray(kps2.level_sigma2, dtype=np.float64),
         np.ascontiguousarray(F12, dtype=np.float64), np.asarray(epipole2, dtype=np.float64).reshape(2),
         a1, a2, n1, TH_LOW,

@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from orbslam_hgcn.compiled import jit, popcount64
+from orbslam_hgcn.compiled import descriptor_words, jit, popcount64
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.match.grid import FeatureGrid
@@ -58,11 +58,6 @@ def predict_octave(max_distance: np.ndarray, distance: np.ndarray, scale_factor:
 def radius_by_viewing_cos(view_cos: np.ndarray) -> np.ndarray:
     """(M,) search radius factor: 2.5 when viewed almost head-on (cos > 0.998), else 4.0."""
     return np.where(np.asarray(view_cos) > 0.998, 2.5, 4.0)
-
-
-def _words(desc: np.ndarray) -> np.ndarray:
-    """(n, 4) uint64 view of (n, 32) uint8 descriptors."""
-    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64)
 
 
 @jit
@@ -123,7 +118,7 @@ def scan_windows(keypoints: KeypointSet, grid: FeatureGrid, x, y, r, lo, hi, des
     second distance), each (M,) int64, -1 and 1 << 30 where absent."""
     return _best_two_in_windows(
         np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(y, dtype=np.float64),
-        np.ascontiguousarray(r, dtype=np.float64), lo, hi, _words(desc), _words(keypoints.desc),
+        np.ascontiguousarray(r, dtype=np.float64), lo, hi, descriptor_words(desc), descriptor_words(keypoints.desc),
         grid.uv, grid.octave, grid.order, grid.start, available,
         grid.min_x, grid.min_y, grid.inv_w, grid.inv_h, grid.cols, grid.rows, keypoints.inv_level_sigma2, chi2_gate,
     )  # fmt: skip

@@ -115,7 +115,8 @@ def limit_library_threads(n: int) -> dict[str, int]:
 def warm_up_kernels() -> float:
     """Compile (first run after an install) or load from numba's cache the compiled kernels
     of tracking and local mapping (pose-only optimisation, projection search and fusion,
-    triangulation search and checks, map point refresh), each module warming its own; returns the seconds it took."""
+    triangulation search and checks, map point refresh), each module warming its own;
+    returns the seconds it took."""
     t0 = time.perf_counter()
     for module in (pose_only, projection_search, matching, triangulation, mappoint):
         module.warm_up()
@@ -764,109 +765,109 @@ class System:
         self.library_threads = limit_library_threads(threads.library_threads)
         prefetch, frozen = None, False
         try:
-            stages = self.stages  # threaded: worker threads and the local BA process start now
-            if not self.sequential and threads.prefetch:
-                if threads.extraction_process and self._extraction is None:
-                    self._extraction = ExtractionProcess(
-                        {name: e.config for name, e in self._extractor_names.items()}, self.camera
-                    )
-                    # The frame on which the tracker's state changes is extracted again in this
-                    # process (process()); load that extractor's kernels and build its pyramid
-                    # tables here, while the child starts, rather than inside that frame.
-                    warm = threading.Thread(
-                        target=warm_up_extractors, args=([self.extractor], self.camera), name="orbslam-warm",
-                        daemon=True,
-                    )  # fmt: skip
-                    warm.start()
+            try:
+                stages = self.stages  # threaded: worker threads and the local BA process start now
+                if not self.sequential and threads.prefetch:
+                    if threads.extraction_process and self._extraction is None:
+                        self._extraction = ExtractionProcess(
+                            {name: e.config for name, e in self._extractor_names.items()}, self.camera
+                        )
+                        # The frame on which the tracker's state changes is extracted again in this
+                        # process (process()); load that extractor's kernels and build its pyramid
+                        # tables here, while the child starts, rather than inside that frame.
+                        warm = threading.Thread(
+                            target=warm_up_extractors, args=([self.extractor], self.camera), name="orbslam-warm",
+                            daemon=True,
+                        )  # fmt: skip
+                        warm.start()
+                        try:
+                            self._extraction.start()  # before the reader takes the first frame
+                        finally:
+                            warm.join()
+                    buffer_s = threads.frame_buffer_s if threads.drop_late else 0.0
+                    # Ahead by more than a frame only unpaced: a paced run behind its camera would
+                    # extract frames the tracker cannot take yet, on the cores local mapping needs.
+                    depth = threads.prefetch_frames if pacer.speed == 0 else 1
+                    prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=buffer_s, depth=depth)
+                if isinstance(stages, ThreadedStages):
+                    stages.wait_ready()
+                frozen = _freeze_startup_objects()
+                stamps = np.asarray(sequence.timestamps, dtype=np.float64)  # as announced
+                i = 0
+                while i < n:
                     try:
-                        self._extraction.start()  # before the reader takes the first frame
-                    finally:
-                        warm.join()
-                buffer_s = threads.frame_buffer_s if threads.drop_late else 0.0
-                # Ahead by more than a frame only unpaced: a paced run behind its camera would
-                # extract frames the tracker cannot take yet, on the cores local mapping needs.
-                depth = threads.prefetch_frames if pacer.speed == 0 else 1
-                prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=buffer_s, depth=depth)
-            if isinstance(stages, ThreadedStages):
-                stages.wait_ready()
-            frozen = _freeze_startup_objects()
-            stamps = np.asarray(sequence.timestamps, dtype=np.float64)  # as announced
-            i = 0
-            while i < n:
-                try:
-                    if prefetch is not None:
-                        i, rec, features, skipped = prefetch.take(i)
-                    else:
-                        rec, features, skipped = self._read_frame(sequence, i, stamps), None, []
-                        if isinstance(rec, Skipped):
-                            rec, skipped = None, [rec]
+                        if prefetch is not None:
+                            i, rec, features, skipped = prefetch.take(i)
                         else:
-                            pacer.wait(rec.timestamp)
-                except SequenceEnded as exc:
-                    log.info("the sequence ends at frame %d: %s", i, exc)
-                    break
-                i += 1
-                for s in skipped:
+                            rec, features, skipped = self._read_frame(sequence, i, stamps), None, []
+                            if isinstance(rec, Skipped):
+                                rec, skipped = None, [rec]
+                            else:
+                                pacer.wait(rec.timestamp)
+                    except SequenceEnded as exc:
+                        log.info("the sequence ends at frame %d: %s", i, exc)
+                        break
+                    i += 1
+                    for s in skipped:
+                        done += 1
+                        bar.update(1)
+                        if s.error is None:
+                            self.tracker.drop(s.index, s.timestamp)
+                        else:
+                            self._skip_unreadable(s, on_bad_frame)
+                    if rec is None:
+                        continue
+                    t_frame = time.perf_counter()
+                    # A keyframe's mapping may hold the tracker (threads.sync_mapping_s); with
+                    # drop_late, not so long that the next frame would wait more than half the frame
+                    # queue. A recorded sequence loses no frame to the wait: it runs late.
+                    due = pacer.due(float(stamps[i])) if i < n else None
+                    late_ok = due is None or not threads.drop_late
+                    self._resume_by = math.inf if late_ok else due + 0.5 * threads.frame_buffer_s
+                    result = self.process(rec.image, rec.timestamp, rec.index, features)
+                    self._clock_frame(pacer, rec.timestamp, features)
+                    if self.observers:
+                        with self.map.lock:
+                            for observe in self.observers:
+                                observe(self, rec, result)
                     done += 1
                     bar.update(1)
-                    if s.error is None:
-                        self.tracker.drop(s.index, s.timestamp)
-                    else:
-                        self._skip_unreadable(s, on_bad_frame)
-                if rec is None:
-                    continue
-                t_frame = time.perf_counter()
-                # A keyframe's mapping may hold the tracker (threads.sync_mapping_s); with
-                # drop_late, not so long that the next frame would wait more than half the frame
-                # queue. A recorded sequence loses no frame to the wait: it runs late.
-                due = pacer.due(float(stamps[i])) if i < n else None
-                self._resume_by = math.inf if due is None or not threads.drop_late else due + 0.5 * threads.frame_buffer_s
-                result = self.process(rec.image, rec.timestamp, rec.index, features)
-                self._clock_frame(pacer, rec.timestamp, features)
-                if self.observers:
-                    with self.map.lock:
-                        for observe in self.observers:
-                            observe(self, rec, result)
-                done += 1
-                bar.update(1)
-                dt = time.perf_counter() - t_frame
-                # Counts only when the map is free: the bar must not wait for a stage.
-                if show and self.map.lock.acquire(blocking=False):
-                    try:
-                        bar.set_postfix(
-                            state=result.state.value, kf=self.map.n_keyframes(), pts=self.map.n_points(),
-                            fps=f"{1.0 / max(dt, 1e-6):.1f}", refresh=False,
-                        )  # fmt: skip
-                    finally:
-                        self.map.lock.release()
-        except KeyboardInterrupt as exc:
-            stop_reason = TERMINATED if isinstance(exc, Terminated) else INTERRUPTED
-            log.warning("%s after %d frames; saving what exists", stop_reason, done)
-        except BaseException:
-            # The reader and the prefetch job first, so that no job starts a child process
-            # again while the stages stop.
-            if prefetch is not None:
-                prefetch.close()
-                prefetch = None
+                    dt = time.perf_counter() - t_frame
+                    # Counts only when the map is free: the bar must not wait for a stage.
+                    if show and self.map.lock.acquire(blocking=False):
+                        try:
+                            bar.set_postfix(
+                                state=result.state.value, kf=self.map.n_keyframes(), pts=self.map.n_points(),
+                                fps=f"{1.0 / max(dt, 1e-6):.1f}", refresh=False,
+                            )  # fmt: skip
+                        finally:
+                            self.map.lock.release()
+            except KeyboardInterrupt as exc:
+                stop_reason = TERMINATED if isinstance(exc, Terminated) else INTERRUPTED
+                log.warning("%s after %d frames; saving what exists", stop_reason, done)
+            except BaseException:
+                # The reader and the prefetch job first, so that no job starts a child process
+                # again while the stages stop.
+                if prefetch is not None:
+                    prefetch.close()
+                    prefetch = None
+                bar.close()
+                self._close_quietly()
+                raise
+            finally:
+                if prefetch is not None:
+                    prefetch.close()
             bar.close()
-            self._close_quietly()
-            if frozen:
-                gc.unfreeze()
-            raise
+            try:
+                self.close(drain=True)
+            except KeyboardInterrupt as exc:  # a second Ctrl-C while the stages finish: stop them now
+                stop_reason = stop_reason or (TERMINATED if isinstance(exc, Terminated) else INTERRUPTED)
+                self._close_quietly()
+            except BaseException:
+                self._close_quietly()
+                raise
         finally:
-            if prefetch is not None:
-                prefetch.close()
-        bar.close()
-        try:
-            self.close(drain=True)
-        except KeyboardInterrupt as exc:  # a second Ctrl-C while the stages finish: stop them now
-            stop_reason = stop_reason or (TERMINATED if isinstance(exc, Terminated) else INTERRUPTED)
-            self._close_quietly()
-        except BaseException:
-            self._close_quietly()
-            raise
-        finally:
-            if frozen:
+            if frozen:  # on every way out: the caller's collector as it was
                 gc.unfreeze()
         self._run_times = (t0, time.perf_counter())
         return RunSummary(done, stop_reason is not None, self._run_times[1] - t0, stop_reason)
