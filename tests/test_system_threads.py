@@ -509,6 +509,33 @@ def test_extraction_runs_ahead_of_a_slow_tracker_by_prefetch_frames(seq):
         ThreadsConfig(prefetch_frames=0)
 
 
+@pytest.mark.skipif(not hasattr(os, "setpriority"), reason="no thread niceness here")
+def test_unpaced_runs_lower_the_priority_of_the_work_done_ahead(seq):
+    """threads.ahead_nice: in an unpaced run the image reader thread and the extraction
+    process run at the tracker's niceness plus ahead_nice (they work ahead, off its path);
+    in a paced run, where a frame's latency counts its extraction, at the tracker's."""
+    base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    for speed, nice, expected in ((0.0, 4, min(base + 4, 19)), (1.0, 4, base), (0.0, 0, base)):
+        system = System(seq.camera, _threads(speed=speed, ahead_nice=nice), sequential=False)
+        seen = []
+
+        def observe(system, rec, result, seen=seen):
+            reader = [t for t in threading.enumerate() if t.name == "orbslam-reader"]
+            child = [p for p in multiprocessing.active_children() if p.name == "orbslam-extraction"]
+            if reader and reader[0].native_id is not None and child:
+                seen.append((os.getpriority(os.PRIO_PROCESS, reader[0].native_id),
+                             os.getpriority(os.PRIO_PROCESS, child[0].pid)))
+
+        system.observers.append(observe)
+        system.run(seq, 8, progress=False)
+        assert seen and set(seen) == {(expected, expected)}, (speed, nice, seen)
+        assert system.stats()["threads"]["ahead_nice"] == (nice if speed == 0 else 0)
+        _assert_nothing_left()
+    for bad in (-1, 20, 2.5, True):
+        with pytest.raises(ConfigError, match="threads.ahead_nice"):
+            ThreadsConfig(ahead_nice=bad)
+
+
 def test_a_run_leaves_objects_frozen_by_the_caller_frozen(seq):
     """A caller that froze its own objects (gc.freeze) finds them frozen after a run: an
     unreachable cycle frozen before the run outlives a collection after it."""

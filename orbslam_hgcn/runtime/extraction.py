@@ -64,11 +64,12 @@ class Extractors:
 class ExtractionProcess:
     """Extract with the extractors ``configs`` ({name: ORBConfig}) in a child process.
 
-    The process starts on :meth:`start` or the first request and lives until :meth:`close`.
+    The process starts on :meth:`start` or the first request and lives until :meth:`close`;
+    ``nice`` is added to its niceness (see :class:`~orbslam_hgcn.childprocess.ChildProcess`).
     """
 
-    def __init__(self, configs: dict[str, ORBConfig], camera: PinholeCamera) -> None:
-        self._child = ChildProcess("extraction", Extractors, (dict(configs), camera), ExtractionError)
+    def __init__(self, configs: dict[str, ORBConfig], camera: PinholeCamera, nice: int = 0) -> None:
+        self._child = ChildProcess("extraction", Extractors, (dict(configs), camera), ExtractionError, nice=nice)
 
     def start(self) -> None:
         """Start the process and wait until its extractors are built and their kernels

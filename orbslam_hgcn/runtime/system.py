@@ -84,6 +84,7 @@ from orbslam_hgcn.runtime.results import (
     write_outputs,
 )
 from orbslam_hgcn.runtime.stages import SequentialStages, ThreadedStages
+from orbslam_hgcn.runtime.worker import lower_thread_priority
 from orbslam_hgcn.tracking.relocalization import Relocalizer
 from orbslam_hgcn.tracking.tracker import Tracker, TrackingState, TrackResult
 from orbslam_hgcn.trajectory import Trajectory, write_tum
@@ -248,11 +249,11 @@ class _Prefetch:
     ``depth`` while frame i is tracked (threaded mode of :meth:`System.run`; one frame ahead
     while the tracker is not tracking).
 
-    A reader thread decodes up to ``ahead`` frames in order (one reader: video files need
-    it). A frame that cannot be read (a DatasetError: missing, empty, corrupt, wrong size)
-    is handed on as such and the reader goes on; any other error reading a frame is raised
-    when that frame is taken, and ends the reading. A frame's job starts
-    once the pacer hands it out. Extraction runs on a thread of its own, or in the system's
+    A reader thread (its niceness raised by ``reader_nice``) decodes up to ``ahead`` frames
+    in order (one reader: video files need it). A frame that cannot be read (a DatasetError:
+    missing, empty, corrupt, wrong size) is handed on as such and the reader goes on; any
+    other error reading a frame is raised when that frame is taken, and ends the reading. A
+    frame's job starts once the pacer hands it out. Extraction runs on a thread of its own, or in the system's
     extraction process when it has one. The extractor is chosen from the tracker's state
     when the job starts; if the state has changed when the frame is processed,
     :meth:`System.process` extracts again.
@@ -266,9 +267,10 @@ class _Prefetch:
 
     def __init__(
         self, system: System, sequence: Sequence, n: int, pacer: _Pacer, ahead: int = 4, buffer_s: float = 0.0,
-        depth: int = 1,
+        depth: int = 1, reader_nice: int = 0,
     ) -> None:
         self.system, self.sequence, self.n, self.pacer = system, sequence, n, pacer
+        self.reader_nice = reader_nice
         self.buffer_s = buffer_s
         self.depth = max(1, depth)
         self._timestamps = np.asarray(sequence.timestamps, dtype=np.float64)
@@ -280,6 +282,8 @@ class _Prefetch:
         self._jobs: collections.deque[tuple[int, Future]] = collections.deque()  # consecutive frames
 
     def _read(self) -> None:
+        if self.reader_nice > 0:
+            lower_thread_priority(self.reader_nice)
         for i in range(self.n):
             try:
                 item: tuple[FrameRecord | None, BaseException | None] = (self.sequence[i], None)
@@ -442,6 +446,7 @@ class System:
         self.bad_frames: list[dict[str, Any]] = []
         self.n_extraction_lost = 0  # extraction processes that died during the run
         self.library_threads: dict[str, int] = {}  # set by run(): threads of OpenCV and faiss
+        self.ahead_nice = 0  # set by run(): niceness added to the reader and the extraction process
         # Paced runs: per frame processed, how late (ms) its pose came out after the camera
         # would have delivered it; the camera time and wall time the run spanned (s).
         self.lags_ms: list[float] = []
@@ -768,9 +773,13 @@ class System:
             try:
                 stages = self.stages  # threaded: worker threads and the local BA process start now
                 if not self.sequential and threads.prefetch:
+                    # Unpaced, the reader and the extraction process work ahead, off the
+                    # tracker's path: it gets the CPU first (threads.ahead_nice).
+                    self.ahead_nice = threads.ahead_nice if pacer.speed == 0 else 0
                     if threads.extraction_process and self._extraction is None:
                         self._extraction = ExtractionProcess(
-                            {name: e.config for name, e in self._extractor_names.items()}, self.camera
+                            {name: e.config for name, e in self._extractor_names.items()}, self.camera,
+                            nice=self.ahead_nice,
                         )
                         # The frame on which the tracker's state changes is extracted again in this
                         # process (process()); load that extractor's kernels and build its pyramid
@@ -788,7 +797,9 @@ class System:
                     # Ahead by more than a frame only unpaced: a paced run behind its camera would
                     # extract frames the tracker cannot take yet, on the cores local mapping needs.
                     depth = threads.prefetch_frames if pacer.speed == 0 else 1
-                    prefetch = _Prefetch(self, sequence, n, pacer, buffer_s=buffer_s, depth=depth)
+                    prefetch = _Prefetch(
+                        self, sequence, n, pacer, buffer_s=buffer_s, depth=depth, reader_nice=self.ahead_nice
+                    )
                 if isinstance(stages, ThreadedStages):
                     stages.wait_ready()
                 frozen = _freeze_startup_objects()
@@ -971,6 +982,7 @@ class System:
                 "mapping_sync": self.configs.threads.mapping_sync,
                 "speed": 0.0 if self.sequential else self.configs.threads.speed,
                 "library_threads": self.library_threads,
+                "ahead_nice": self.ahead_nice,
             },
             "events": self.events,
             "real_time": self.real_time(),

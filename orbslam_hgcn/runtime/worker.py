@@ -29,7 +29,7 @@ class WorkerError(StageError):
     holds the original exception."""
 
 
-def _lower_thread_priority(nice: int) -> None:
+def lower_thread_priority(nice: int) -> None:
     """Add ``nice`` to the calling thread's niceness (Linux gives every thread its own;
     elsewhere, or when refused, nothing changes)."""
     if not (sys.platform.startswith("linux") and hasattr(os, "setpriority")):
@@ -121,7 +121,7 @@ class Worker:
 
     def _run(self) -> None:
         if self.nice > 0:
-            _lower_thread_priority(self.nice)
+            lower_thread_priority(self.nice)
         while True:
             item = self._queue.get()
             try:
