@@ -728,8 +728,10 @@ class ThreadsConfig:
     # (500 frames, idle 2-core machine, 8 pairs alternated with 0) the span from the first
     # frame to the end fell in 7 pairs (6% at the median, up to 18%; +1% in the other), and
     # tracking's wall time per frame in all 8; on KITTI 00, -9% to +3% over 3 pairs (within
-    # the noise). Paced runs leave both at the tracker's priority: a frame's latency counts
-    # its extraction.
+    # the noise). The cost: beside a normal-priority CPU job, which now takes the CPU from
+    # the extraction process, the span grew in 4 of 5 pairs (0-12%, 5% at the median, KITTI
+    # and fr3); 0 turns it off. Paced runs leave both at the tracker's priority: a frame's
+    # latency counts its extraction.
     ahead_nice: int = 3
     # Threaded only: System.run reads images ahead on a thread of its own and extracts the
     # next frame's ORB features while the current frame is tracked.
