@@ -36,9 +36,10 @@ def failing_extraction(fail_at: int, die: bool, once: Path) -> type[ExtractionPr
     """An ExtractionProcess class whose child serves :class:`FailingExtractors`."""
 
     class _Failing(ExtractionProcess):
-        def __init__(self, configs, camera) -> None:
+        def __init__(self, configs, camera, nice: int = 0) -> None:
             self._child = ChildProcess(
-                "extraction", FailingExtractors, (dict(configs), camera, fail_at, die, str(once)), ExtractionError
+                "extraction", FailingExtractors, (dict(configs), camera, fail_at, die, str(once)), ExtractionError,
+                nice=nice,
             )
 
     return _Failing
