@@ -44,6 +44,11 @@ def popcount64(x):
 
 
 def descriptor_words(desc: np.ndarray) -> np.ndarray:
-    """(N, 4) uint64 view of (N, 32) uint8 ORB descriptors: the kernels' input for
-    :func:`popcount64`."""
-    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64)
+    """(N, ceil(B / 8)) uint64 view of (N, B) uint8 packed-bit descriptors, zero-padded to
+    8 bytes ((N, 4) for ORB's 32 bytes, a view without a copy): the input of
+    :func:`popcount64` and of the vocabularies' Hamming distances."""
+    desc = np.ascontiguousarray(desc, dtype=np.uint8)
+    pad = (-desc.shape[1]) % 8
+    if pad:
+        desc = np.concatenate([desc, np.zeros((len(desc), pad), np.uint8)], axis=1)
+    return desc.view(np.uint64)

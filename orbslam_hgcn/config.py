@@ -828,8 +828,10 @@ class ThreadsConfig:
     library_threads: int = 0
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.ahead_nice, int) and not isinstance(self.ahead_nice, bool) and 0 <= self.ahead_nice <= 19):
-            raise ConfigError(f"threads.ahead_nice: must be an integer in [0, 19], found {self.ahead_nice!r}")
+        for name in ("solver_nice", "worker_nice", "ahead_nice"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 19):
+                raise ConfigError(f"threads.{name}: must be an integer in [0, 19] (niceness added), found {value!r}")
         if not (math.isfinite(self.speed) and self.speed >= 0):
             raise ConfigError(f"threads.speed: must be a finite number >= 0 (0: no pacing), found {self.speed!r}")
         if not (math.isfinite(self.keyframe_wait_s) and self.keyframe_wait_s >= 0):

@@ -531,9 +531,10 @@ def test_unpaced_runs_lower_the_priority_of_the_work_done_ahead(seq):
         assert seen and set(seen) == {(expected, expected)}, (speed, nice, seen)
         assert system.stats()["threads"]["ahead_nice"] == (nice if speed == 0 else 0)
         _assert_nothing_left()
-    for bad in (-1, 20, 2.5, True):
-        with pytest.raises(ConfigError, match="threads.ahead_nice"):
-            ThreadsConfig(ahead_nice=bad)
+    for name in ("ahead_nice", "solver_nice", "worker_nice"):
+        for bad in (-1, 20, 2.5, True):
+            with pytest.raises(ConfigError, match=f"threads.{name}"):
+                ThreadsConfig(**{name: bad})
 
 
 def test_a_run_leaves_objects_frozen_by_the_caller_frozen(seq):

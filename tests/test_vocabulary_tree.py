@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import vocab_fixtures as vf
 
-from orbslam_hgcn.vocabulary.descriptors import as_words64, hamming_matrix, segment_centres
+from orbslam_hgcn.compiled import descriptor_words
+from orbslam_hgcn.vocabulary.descriptors import hamming_matrix, segment_centres
 from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
 
 
@@ -13,7 +14,7 @@ def test_bitwise_majority_centres():
     rows = np.array([[0b1011_0001] + [0] * 7, [0b0011_0011] + [0] * 7, [0b1001_0000] + [0] * 7,
                      [0b1111_1111] + [255] * 7, [0b0000_0000] + [0] * 7], np.uint8)
     # Segments: rows 0-2 (majority of three) and rows 3-4 (a tie sets the bit).
-    c = segment_centres(as_words64(rows), np.array([0, 3]), "binary").view(np.uint8)
+    c = segment_centres(descriptor_words(rows), np.array([0, 3]), "binary").view(np.uint8)
     assert c[0, 0] == 0b1011_0001 and not c[0, 1:].any()
     assert (c[1] == 255).all()
     m = segment_centres(np.array([[1.0, 2.0], [3.0, 6.0], [5.0, 5.0]], np.float32), np.array([0, 2]), "float")

@@ -253,10 +253,10 @@ class _Prefetch:
     in order (one reader: video files need it). A frame that cannot be read (a DatasetError:
     missing, empty, corrupt, wrong size) is handed on as such and the reader goes on; any
     other error reading a frame is raised when that frame is taken, and ends the reading. A
-    frame's job starts once the pacer hands it out. Extraction runs on a thread of its own, or in the system's
-    extraction process when it has one. The extractor is chosen from the tracker's state
-    when the job starts; if the state has changed when the frame is processed,
-    :meth:`System.process` extracts again.
+    frame's job starts once the pacer hands it out. Extraction runs on a thread of its own,
+    or in the system's extraction process when it has one. The extractor is chosen from the
+    tracker's state when the job starts; if the state has changed when the frame is
+    processed, :meth:`System.process` extracts again.
 
     With ``buffer_s`` > 0 (``threads.drop_late``: a live source), a paced run behind its
     camera drops frames as a camera driver whose queue holds ``buffer_s`` seconds of frames
@@ -772,10 +772,11 @@ class System:
         try:
             try:
                 stages = self.stages  # threaded: worker threads and the local BA process start now
-                if not self.sequential and threads.prefetch:
-                    # Unpaced, the reader and the extraction process work ahead, off the
-                    # tracker's path: it gets the CPU first (threads.ahead_nice).
-                    self.ahead_nice = threads.ahead_nice if pacer.speed == 0 else 0
+                # Unpaced, the reader and the extraction process work ahead, off the tracker's
+                # path: it gets the CPU first (threads.ahead_nice).
+                prefetching = not self.sequential and threads.prefetch
+                self.ahead_nice = threads.ahead_nice if prefetching and pacer.speed == 0 else 0
+                if prefetching:
                     if threads.extraction_process and self._extraction is None:
                         self._extraction = ExtractionProcess(
                             {name: e.config for name, e in self._extractor_names.items()}, self.camera,

@@ -13,6 +13,8 @@ import logging
 
 import numpy as np
 
+from orbslam_hgcn.compiled import descriptor_words
+
 log = logging.getLogger(__name__)
 
 BINARY = "binary"
@@ -31,19 +33,11 @@ def descriptor_kind(desc: np.ndarray) -> str:
     raise ValueError(f"descriptors must be uint8 (binary) or float, got {desc.dtype}")
 
 
-def as_words64(desc: np.ndarray) -> np.ndarray:
-    """(N, B) uint8 packed bits -> (N, ceil(B/8)) uint64 view (zero-padded to 8 bytes)."""
-    desc = np.ascontiguousarray(desc, dtype=np.uint8)
-    pad = (-desc.shape[1]) % 8
-    if pad:
-        desc = np.concatenate([desc, np.zeros((len(desc), pad), np.uint8)], axis=1)
-    return desc.view(np.uint64)
-
-
 def dist_to_candidates(x: np.ndarray, cand: np.ndarray, kind: str) -> np.ndarray:
     """Distance of every row to each of its own candidates.
 
-    x: (N, B) uint64 words (binary, see :func:`as_words64`) or (N, D) float32.
+    x: (N, B) uint64 words (binary, see :func:`~orbslam_hgcn.compiled.descriptor_words`)
+    or (N, D) float32.
     cand: (N, k, B) or (N, k, D) candidates of each row.
     Returns (N, k) int32 Hamming distances or float32 squared Euclidean distances.
     """
@@ -55,7 +49,7 @@ def dist_to_candidates(x: np.ndarray, cand: np.ndarray, kind: str) -> np.ndarray
 
 def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(N, M) int32 Hamming distances between (N, B) and (M, B) uint8 descriptors."""
-    a64, b64 = as_words64(a), as_words64(b)
+    a64, b64 = descriptor_words(a), descriptor_words(b)
     out = np.empty((len(a64), len(b64)), np.int32)
     step = max(1, _CHUNK // max(len(b64), 1))
     for s in range(0, len(a64), step):

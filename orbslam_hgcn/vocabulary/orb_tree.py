@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
+from orbslam_hgcn.compiled import descriptor_words
 from orbslam_hgcn.vocabulary.base import Vocabulary, VocabularyMetadata, now_iso, require
 from orbslam_hgcn.vocabulary.bow import idf_from_documents
-from orbslam_hgcn.vocabulary.descriptors import BINARY, FLOAT, as_words64, descriptor_kind, dist_to_candidates
+from orbslam_hgcn.vocabulary.descriptors import BINARY, FLOAT, descriptor_kind, dist_to_candidates
 from orbslam_hgcn.vocabulary.training.tree_build import build_tree
 
 log = logging.getLogger(__name__)
@@ -67,12 +68,12 @@ class TreeVocabulary(Vocabulary):
         self.node_word = np.full(M, -1, np.int32)
         self.node_word[self.word_node] = np.arange(len(self.word_node), dtype=np.int32)
         self._kind = BINARY if self.centres.dtype == np.uint8 else FLOAT
-        self._cx = as_words64(self.centres) if self._kind == BINARY else self.centres.astype(np.float32)
+        self._cx = descriptor_words(self.centres) if self._kind == BINARY else self.centres.astype(np.float32)
         self._fv_cache: dict[int, np.ndarray] = {}
 
     # --- quantisation ---------------------------------------------------------------------
     def _words(self, desc: np.ndarray) -> np.ndarray:
-        x = as_words64(desc) if self._kind == BINARY else desc
+        x = descriptor_words(desc) if self._kind == BINARY else desc
         cur = np.zeros(len(x), np.int32)
         rows = np.arange(len(x))
         for _ in range(int(self.depth.max())):

@@ -26,9 +26,9 @@ import logging
 import numpy as np
 from tqdm import tqdm
 
+from orbslam_hgcn.compiled import descriptor_words
 from orbslam_hgcn.vocabulary.descriptors import (
     BINARY,
-    as_words64,
     descriptor_kind,
     dist_to_candidates,
     segment_centres,
@@ -110,7 +110,7 @@ def build_tree(
     if k < 2 or levels < 1:
         raise ValueError("the tree needs k >= 2 and levels >= 1")
     kind = descriptor_kind(desc)
-    x = as_words64(desc) if kind == BINARY else np.ascontiguousarray(desc, dtype=np.float32)
+    x = descriptor_words(desc) if kind == BINARY else np.ascontiguousarray(desc, dtype=np.float32)
     rng = np.random.default_rng(seed)
     n = len(x)
     parents = [np.array([-1], np.int64)]
