@@ -746,10 +746,15 @@ class ThreadsConfig:
     # tracker waits for local mapping. Unpaced KITTI 00, 3 runs each alternated on an idle
     # machine: 7.4-8.5 s (median 8.3) from the first frame to the end with 3, 8.6-9.6 s
     # (8.8) with 1, the same poses; a frame's latency then counts its wait in the queue.
+    # Deeper still (10 against 3, alternated on an idle machine, the same poses every
+    # time): on the 640x480 fr3 replay (500 frames; decoding its PNGs costs about as much
+    # CPU as extracting them, and the reader and extraction run ahead together) the span
+    # fell in 9 of 9 pairs, by 1.0-5.5% (3.4% at the median); on KITTI 00 by 3.4% in
+    # 2 of 2; 20 and 40 were no faster than 10 on the replay (2 runs each).
     # Paced runs stay one frame ahead: with 3, KITTI 00 beside a normal-priority job had
     # latency p95 96-139 ms against 74-81, the frames extracted early taking the core that
     # the local mapping the tracker waits for needs.
-    prefetch_frames: int = 3
+    prefetch_frames: int = 10
     # Threaded only: System.run hands frame i to the tracker no earlier than
     # (t_i - t_0) / speed seconds after frame 0, t being the dataset's timestamps, as a
     # camera delivers them (ORB-SLAM's example programs pace datasets the same way). Local
