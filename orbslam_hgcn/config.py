@@ -821,7 +821,10 @@ class ThreadsConfig:
     # alternating with "each", latency p95 33-68 ms against 50-70 ms; unpaced 17.2 frames/s
     # against 15.2. Earlier forms: holding before local BA's solve, 42.59 cm; waiting only
     # for triangulation, not fusion, 49.45 cm with 50 keyframes (both deterministic over 9
-    # runs).
+    # runs). Those runs were on an AMD EPYC machine; on an Intel Xeon one the same code
+    # gives 49 keyframes, 43.86 cm and 42.85 cm in every run, paced or unpaced, idle or
+    # beside other jobs (sequential: 53 keyframes, 45.51 cm): still one map whatever the
+    # load, but not the same map on every CPU.
     mapping_sync: str = "points"
     # Threads that OpenCV's and faiss's (OpenMP) pools may start in the process that tracks
     # and maps (System.run sets them, stats.json records them; the extraction process uses
