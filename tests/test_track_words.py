@@ -14,6 +14,7 @@ from orbslam_hgcn.errors import ConfigError
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.app.mapfile import install_map, load_map, save_system_map
+from orbslam_hgcn.app.run import trajectory_ate
 from orbslam_hgcn.runtime.system import Configs, System
 from orbslam_hgcn.vocabulary import load_vocabulary
 from orbslam_hgcn.vocabulary.track_network import TrackNetworkWords
@@ -122,12 +123,16 @@ def test_lone_frame_relocalises_against_track_words(track_mapped):
     # The first frame after the load is lost by construction and described alone.
     assert stats["relocalization"]["successes"] >= 1 and stats["relocalization"]["history"][0][0] == 30
     assert stats["frames"]["tracked"] == 10
-    # Its pose agrees with the mapping run's pose of the same frame.
+    # Its pose agrees with the mapping run's pose of the same frame, within three times the
+    # per-frame error of that run against the ground truth (RMSE after Sim(3) alignment,
+    # taken to map units by the alignment's scale): the relocalised pose is as good as a
+    # tracked one.
     loc = system.camera_trajectory()
     ref = mapping.camera_trajectory()
     j = ref.nearest(loc.timestamps[0], 1e-4)
     assert j is not None
-    assert np.linalg.norm(loc.positions[0] - ref.positions[j]) < 0.01 * np.ptp(ref.positions, axis=0).max()
+    ate = trajectory_ate(seq.ground_truth, ref)
+    assert np.linalg.norm(loc.positions[0] - ref.positions[j]) < 3.0 * ate["rmse_m"] / ate["scale"]
 
 
 # --- the graph network over causal track mates (local_mapping.track_words_by: network) ---
