@@ -13,8 +13,9 @@ the refresh of map points' viewing ranges and descriptors (:mod:`orbslam_hgcn.ma
 and local BA (:mod:`orbslam_hgcn.backend.schur_ba`) are compiled too, as are ORB
 extraction's FAST detection, quadtree and descriptor loops
 (:mod:`orbslam_hgcn.features.fast`, :mod:`~orbslam_hgcn.features.distribute`,
-:mod:`~orbslam_hgcn.features.rbrief`), and the HGCN vocabulary's run-time layers
-(:mod:`orbslam_hgcn.vocabulary.ball`, warmed when a vocabulary with a network is built).
+:mod:`~orbslam_hgcn.features.rbrief`), the HGCN vocabulary's run-time layers
+(:mod:`orbslam_hgcn.vocabulary.ball`, warmed when a vocabulary with a network is built)
+and the row filters of the dataset readers' PNG decoder (:mod:`orbslam_hgcn.datasets.png`).
 
 The first run after an install compiles them (7-10 s for the tracking kernels and about
 10 s for FAST and the quadtree on a 2-core machine); later runs load them from the cache

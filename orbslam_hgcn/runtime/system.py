@@ -62,7 +62,7 @@ from orbslam_hgcn.config import (
     load_yaml,
     section_from_yaml,
 )
-from orbslam_hgcn.datasets import Sequence
+from orbslam_hgcn.datasets import Sequence, png
 from orbslam_hgcn.datasets.base import FrameRecord, SequenceEnded
 from orbslam_hgcn.errors import ConfigError, DatasetError, FrameError, Terminated
 from orbslam_hgcn.features.keypoints import KeypointSet
@@ -116,10 +116,10 @@ def limit_library_threads(n: int) -> dict[str, int]:
 def warm_up_kernels() -> float:
     """Compile (first run after an install) or load from numba's cache the compiled kernels
     of tracking and local mapping (pose-only optimisation, projection search and fusion,
-    triangulation search and checks, map point refresh), each module warming its own;
-    returns the seconds it took."""
+    triangulation search and checks, map point refresh) and the readers' PNG rows, each
+    module warming its own; returns the seconds it took."""
     t0 = time.perf_counter()
-    for module in (pose_only, projection_search, matching, triangulation, mappoint):
+    for module in (pose_only, projection_search, matching, triangulation, mappoint, png):
         module.warm_up()
     seconds = time.perf_counter() - t0
     if seconds > 2.0:
