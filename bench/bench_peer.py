@@ -6,10 +6,12 @@ Each run starts both systems in turn, each in a subprocess of its own, on the sa
   back from its ``stats.json`` and ``KeyFrameTrajectory.txt``;
 - ORB-SLAM3 through the optional extra ``peer`` (the ``pyorbslam3`` bindings), with the
   project's shipped ORB tree exported as a DBoW2 text vocabulary and a settings file in
-  ORB-SLAM3 v1.0's format written from the dataset's camera. The images are decoded here
-  and piped to the ORB-SLAM3 process, which hands frame i to ORB-SLAM3 no earlier than its
-  timestamp says the camera delivered it (as ORB-SLAM3's example programs pace their input;
-  like ``orbslam-hgcn run``, a gap of more than 1 s in the timestamps is waited 1 s). It
+  ORB-SLAM3 v1.0's format written from the dataset's camera. The images are decoded here,
+  by OpenCV as ORB-SLAM3's example programs decode them (``cv2.imread``, grey; not by
+  orbslam_hgcn's faster PNG decoder, which is ours, not ORB-SLAM3's), and piped to the
+  ORB-SLAM3 process, which hands frame i to ORB-SLAM3 no earlier than its timestamp says
+  the camera delivered it (as ORB-SLAM3's example programs pace their input; like
+  ``orbslam-hgcn run``, a gap of more than 1 s in the timestamps is waited 1 s). It
   records every frame's tracking state and, after ``Shutdown``, the keyframe trajectory. A
   crash or an ``exit`` inside ORB-SLAM3 ends that process only; the bench reports it and
   goes on.
@@ -409,6 +411,7 @@ def run_ours(args: argparse.Namespace, kind: str, out: Path, gt: Any) -> dict[st
 
 def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, settings: Path, out: Path,
              gt: Any) -> dict[str, Any]:
+    import cv2
     import numpy as np
 
     out.mkdir(parents=True, exist_ok=True)
@@ -430,12 +433,18 @@ def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, setti
         watchdog = threading.Timer(limit, kill)
         watchdog.start()
         try:
+            paths = getattr(sequence, "paths", None)
             for i in range(n):
-                rec = sequence[i]
-                image = np.ascontiguousarray(rec.image, dtype=np.uint8)
+                if paths is not None:  # OpenCV's decoder, as ORB-SLAM3's example programs read them
+                    image = cv2.imread(str(paths[i]), cv2.IMREAD_GRAYSCALE)
+                    if image is None:
+                        fail(f"{paths[i]}: OpenCV cannot read this image")
+                else:  # a video: the reader's frames
+                    image = sequence[i].image
+                image = np.ascontiguousarray(image, dtype=np.uint8)
                 h, w = image.shape[:2]
                 c = image.shape[2] if image.ndim == 3 else 1
-                proc.stdin.write(FRAME_HEADER.pack(float(rec.timestamp), h, w, c))
+                proc.stdin.write(FRAME_HEADER.pack(float(sequence.timestamps[i]), h, w, c))
                 proc.stdin.write(image.data)
             proc.stdin.write(FRAME_HEADER.pack(0.0, 0, 0, 0))
             proc.stdin.close()
