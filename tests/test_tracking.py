@@ -239,6 +239,51 @@ def test_orthonormalize_and_resolve_points():
     assert resolve_points(m, np.array([a, b, c, -1])).tolist() == [b, b, -1, -1]
 
 
+def test_recorded_pose_is_optimised_against_the_final_map():
+    """refine_recorded_pose: a frame's recorded matches, whose points were all fused since
+    into points at their true positions, give the true pose from a start 3 cm and 2 degrees
+    off; a fused point's old position would not, and leaving the fused points out would
+    leave too few. With too few points left after culling, None."""
+    from scipy.spatial.transform import Rotation
+
+    from orbslam_hgcn.config import BackendConfig
+    from orbslam_hgcn.tracking.frame_ops import FrameMatches, refine_recorded_pose
+
+    rng = np.random.default_rng(4)
+    m = Map()
+    kf = m.add_keyframe(Frame(0, 0.0, _CAM, _kps(rng, 10), T_cw=np.eye(4)))
+    T_true = np.eye(4)
+    T_true[:3, :3] = Rotation.from_rotvec([0.05, -0.1, 0.02]).as_matrix()
+    T_true[:3, 3] = [0.1, -0.05, 0.2]
+    n = 60
+    X_c = np.column_stack([rng.uniform(-1.5, 1.5, (n, 2)), rng.uniform(2.0, 6.0, n)])
+    X_w = (X_c - T_true[:3, 3]) @ T_true[:3, :3]  # camera -> world
+    uv, _ = project(T_true, X_w, _CAM.K)
+    old = m.add_map_points(X_w + [0.02, 0.0, 0.01], kf.id)  # where the frame saw them: 2 cm off
+    new = m.add_map_points(X_w, kf.id)  # the final map's points
+    for a, b in zip(old.tolist(), new.tolist()):
+        m.replace_point(a, b)
+    matches = FrameMatches(old, uv.astype(np.float32), np.zeros(n, np.uint8), 1.2 ** np.arange(8), _CAM.K)
+    start = T_true.copy()
+    start[:3, :3] = Rotation.from_rotvec([0.0, 0.035, 0.0]).as_matrix() @ start[:3, :3]
+    start[:3, 3] += [0.03, 0.0, 0.0]
+    cfg = BackendConfig()
+    refined = refine_recorded_pose(m, matches, start, cfg, min_points=30)
+    assert refined is not None
+    assert np.abs(refined[:3, 3] - T_true[:3, 3]).max() < 1e-4
+    assert rotation_angle_deg(refined[:3, :3] @ T_true[:3, :3].T) < 1e-3
+    # The old positions, read without following the fusions, give another pose.
+    stale = FrameMatches(new, uv.astype(np.float32), np.zeros(n, np.uint8), 1.2 ** np.arange(8), _CAM.K)
+    m.set_point_positions(new, m.positions(old))
+    moved = refine_recorded_pose(m, stale, start, cfg, min_points=30)
+    assert moved is not None and np.abs(moved[:3, 3] - T_true[:3, 3]).max() > 0.01
+    m.set_point_positions(new, X_w)
+    for pid in new[:31].tolist():  # culled: 29 points left
+        m.set_bad_point(pid)
+    assert refine_recorded_pose(m, matches, start, cfg, min_points=30) is None
+    assert refine_recorded_pose(m, matches, start, cfg, min_points=29) is not None
+
+
 _CAM = PinholeCamera(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
 
 

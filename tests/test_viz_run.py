@@ -115,8 +115,9 @@ def test_one_camera_pose_per_tracked_frame(slam_run):
 
 
 def test_poses_agree_with_camera_trajectory_file(slam_run):
-    """The file holds the same frames; its poses come from the keyframes after local BA, so
-    they differ from the tracked ones by BA's small adjustments only."""
+    """The file holds the same frames; its poses come from the keyframes after local BA and
+    one more optimisation against the final map, so they differ from the tracked ones by
+    small adjustments only; the recording's final trajectory is the file's."""
     traj = read_tum(slam_run.out / "CameraTrajectory.txt")
     rows = rows_with(slam_run.temporal[ent.CAMERA], "Transform3D:translation")
     assert len(traj) == len(rows)

@@ -232,11 +232,12 @@ def run_dataset(
     if not end.complete:
         log.warning("the run ended early (%s): %s; writing the results of the frames processed", end.kind,
                     end.reason)  # fmt: skip
+    camera = system.camera_trajectory()
     ate: dict[str, Any] = {}
     if sequence.ground_truth is not None and len(sequence.ground_truth) >= 3:
         ate = {
             "keyframes": trajectory_ate(sequence.ground_truth, system.keyframe_trajectory()),
-            "camera": trajectory_ate(sequence.ground_truth, system.camera_trajectory()),
+            "camera": trajectory_ate(sequence.ground_truth, camera),
         }
     extra = {
         "dataset": {"path": str(path), "kind": kind or "auto", "name": sequence.name, "frames": len(sequence)},
@@ -257,7 +258,7 @@ def run_dataset(
     if viz is not None:
         extra["rerun"] = viz.summary()
     try:
-        paths = system.save(out, extra)
+        paths = system.save(out, extra, camera)
         if crash is not None:
             paths["traceback"] = out / "traceback.txt"
             paths["traceback"].write_text(crash, encoding="utf-8")

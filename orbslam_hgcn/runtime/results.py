@@ -7,6 +7,12 @@ keyframe culled meanwhile is replaced by its spanning-tree parent through the re
 it kept (``T_cp``). Only the frames of one map are written (the largest of an atlas, or the
 map it was merged into); the others (before initialisation, lost, tracked in a map
 discarded by a reset or in another map of the atlas) are left out of the file and counted.
+
+With ``tracking.refine_frame_poses`` (the default) the frames then go one step further
+than ORB-SLAM2: each pose so rebuilt is the start of one more motion-only optimisation
+against the final map, from the inlier matches the frame was tracked with
+(:func:`~orbslam_hgcn.tracking.frame_ops.refine_recorded_pose`). A keyframe's own frame
+keeps its keyframe's pose, and a frame with too few of its points left keeps the rebuilt one.
 """
 
 from __future__ import annotations
@@ -19,9 +25,10 @@ from typing import Any
 
 import numpy as np
 
+from orbslam_hgcn.config import BackendConfig
 from orbslam_hgcn.geometry.se3 import inv_T
 from orbslam_hgcn.map import Map
-from orbslam_hgcn.tracking.frame_ops import pose_from_reference
+from orbslam_hgcn.tracking.frame_ops import pose_from_reference, refine_recorded_pose
 from orbslam_hgcn.tracking.tracker import PoseRecord, TrackingState
 from orbslam_hgcn.trajectory import Trajectory, write_tum
 
@@ -36,11 +43,16 @@ def keyframe_trajectory(m: Map) -> Trajectory:
     return Trajectory(np.array([kf.timestamp for kf in kfs]), np.stack([kf.T_wc for kf in kfs]))
 
 
-def camera_trajectory(records: Iterable[PoseRecord], m: Map, generation: int | None = None) -> Trajectory:
+def camera_trajectory(
+    records: Iterable[PoseRecord], m: Map, generation: int | None = None,
+    refine: BackendConfig | None = None, min_points: int = 30,
+) -> Trajectory:  # fmt: skip
     """T_wc of every frame with a pose in map ``m`` (see the module text): its reference
     keyframe is one of the map's (in an atlas keyframe ids are unique across maps, and a
     merged map holds the keyframes of both). ``generation``: also only the records of that
-    generation (a tracker without an atlas numbers the keyframes of each new map from 0)."""
+    generation (a tracker without an atlas numbers the keyframes of each new map from 0).
+    ``refine``: optimise again each frame that recorded its matches, with this pose
+    optimiser's settings, where at least ``min_points`` of its points are left."""
     stamps, poses = [], []
     for rec in records:
         if rec.T_cr is None or rec.ref_kf_id < 0 or not m.owns(rec.ref_kf_id):
@@ -51,6 +63,11 @@ def camera_trajectory(records: Iterable[PoseRecord], m: Map, generation: int | N
         if T_cw is None:
             log.warning("frame %d: reference keyframe chain ends at a culled keyframe; pose left out", rec.frame_id)
             continue
+        ref = m.keyframe(rec.ref_kf_id)
+        if refine is not None and rec.matches is not None and (ref.bad or ref.frame_id != rec.frame_id):
+            refined = refine_recorded_pose(m, rec.matches, T_cw, refine, min_points)
+            if refined is not None:  # else too few points left: the pose the keyframe carries
+                T_cw = refined
         stamps.append(rec.timestamp)
         poses.append(inv_T(T_cw))
     if not stamps:

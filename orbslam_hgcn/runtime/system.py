@@ -955,8 +955,18 @@ class System:
     def keyframe_trajectory(self) -> Trajectory:
         return keyframe_trajectory(self.output_map())
 
-    def camera_trajectory(self) -> Trajectory:
-        return camera_trajectory(self.tracker.records, self.output_map())
+    def camera_trajectory(self, refine: bool = True) -> Trajectory:
+        """Every frame's pose in the output map, as CameraTrajectory.txt holds it: carried by
+        its reference keyframe and, when ``tracking.refine_frame_poses`` is on, optimised
+        again against the map as it is now (see :mod:`~orbslam_hgcn.runtime.results`).
+        ``refine`` False skips that step (a live view's redraw mid-run)."""
+        return self._camera_trajectory(self.output_map(), refine)
+
+    def _camera_trajectory(self, m: Map, refine: bool) -> Trajectory:
+        cfg = self.configs
+        on = refine and cfg.tracking.refine_frame_poses
+        return camera_trajectory(self.tracker.records, m, refine=cfg.backend if on else None,
+                                 min_points=cfg.tracking.min_inliers)  # fmt: skip
 
     def stats(self) -> dict[str, Any]:
         """Counts and per-stage timings (ms) of the run so far."""
@@ -1015,11 +1025,14 @@ class System:
             "relocalization": self.relocalizer.stats() if hasattr(self.relocalizer, "stats") else {},
         }
 
-    def save(self, out: str | Path, extra: dict[str, Any] | None = None) -> dict[str, Path]:
-        """Write KeyFrameTrajectory.txt, CameraTrajectory.txt (the output map) and
-        stats.json into ``out``; with several maps, each other map's trajectories into
-        ``out/maps/`` (KeyFrameTrajectory_map<id>.txt, CameraTrajectory_map<id>.txt), listed
-        in stats.json under ``atlas.map_files``."""
+    def save(
+        self, out: str | Path, extra: dict[str, Any] | None = None, camera: Trajectory | None = None
+    ) -> dict[str, Path]:
+        """Write KeyFrameTrajectory.txt, CameraTrajectory.txt (the output map; ``camera``
+        when given, else :meth:`camera_trajectory`) and stats.json into ``out``; with
+        several maps, each other map's trajectories into ``out/maps/``
+        (KeyFrameTrajectory_map<id>.txt, CameraTrajectory_map<id>.txt), listed in
+        stats.json under ``atlas.map_files``."""
         stats = self.stats()
         if extra:
             stats.update(extra)
@@ -1032,7 +1045,9 @@ class System:
             kf_path = folder / f"KeyFrameTrajectory_map{m.map_id}.txt"
             cam_path = folder / f"CameraTrajectory_map{m.map_id}.txt"
             write_tum(kf_path, keyframe_trajectory(m))
-            write_tum(cam_path, camera_trajectory(self.tracker.records, m))
+            write_tum(cam_path, self._camera_trajectory(m, refine=True))
             files[str(m.map_id)] = {"keyframes": str(kf_path), "camera": str(cam_path)}
         stats["atlas"]["map_files"] = files
-        return write_outputs(out, self.keyframe_trajectory(), self.camera_trajectory(), stats)
+        if camera is None:
+            camera = self.camera_trajectory()
+        return write_outputs(out, self.keyframe_trajectory(), camera, stats)

@@ -9,6 +9,7 @@ drops or flags the matches the optimiser rejects.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -17,6 +18,23 @@ from orbslam_hgcn.config import BackendConfig
 from orbslam_hgcn.map import Frame, Map
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FrameMatches:
+    """A tracked frame's inlier matches, kept so that its pose can be optimised again
+    against the final map (:func:`refine_recorded_pose`).
+
+    point_ids: (M,) int64 map points; uv: (M, 2) float32 undistorted pixels; octave: (M,)
+    uint8 pyramid levels; scale_factors: (L,) float64 scale of each level and K: (3, 3)
+    intrinsics, both the frame's own arrays (shared, not copied). About 17 bytes a match.
+    """
+
+    point_ids: np.ndarray
+    uv: np.ndarray
+    octave: np.ndarray
+    scale_factors: np.ndarray
+    K: np.ndarray
 
 
 def project(T_cw: np.ndarray, points_w: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -107,6 +125,23 @@ def resolve_points(m: Map, pids: np.ndarray) -> np.ndarray:
                 break
         pids[i] = pid if pid >= 0 and not m.point(pid).bad else -1
     return pids
+
+
+def refine_recorded_pose(
+    m: Map, matches: FrameMatches, T_cw: np.ndarray, config: BackendConfig, min_points: int
+) -> np.ndarray | None:
+    """(4, 4) T_cw of a tracked frame optimised again (motion-only) against the map as it is
+    now, from its recorded inlier ``matches`` (points fused since are followed to the
+    survivor, culled ones left out) and starting at ``T_cw``; None when fewer than
+    ``min_points`` points are left or remain inliers."""
+    ids = resolve_points(m, matches.point_ids)
+    keep = np.flatnonzero(ids >= 0)
+    if len(keep) < min_points:
+        return None
+    inv_sigma2 = 1.0 / matches.scale_factors.astype(np.float64) ** 2
+    res = optimize_pose(T_cw, m.positions(ids[keep]), matches.uv[keep].astype(np.float64),
+                        inv_sigma2[matches.octave[keep]], matches.K, config)  # fmt: skip
+    return res.T_cw if res.ok and int(res.inliers.sum()) >= min_points else None
 
 
 def refresh_frame_points(frame: Frame, m: Map) -> None:

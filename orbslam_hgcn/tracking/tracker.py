@@ -34,6 +34,7 @@ from orbslam_hgcn.geometry.se3 import inv_T
 from orbslam_hgcn.map import Frame, KeyFrame, Map
 from orbslam_hgcn.match.grid import FeatureGrid
 from orbslam_hgcn.tracking.frame_ops import (
+    FrameMatches,
     discard_outliers,
     good_keyframe,
     optimize_frame_pose,
@@ -85,6 +86,8 @@ class PoseRecord:
     generation: int
     dropped: bool = False  # never processed: the system was behind its camera
     unreadable: bool = False  # never processed: its image could not be read
+    # The inlier matches the pose was tracked with (TrackingConfig.refine_frame_poses).
+    matches: FrameMatches | None = None
 
 
 @dataclass
@@ -548,4 +551,10 @@ class Tracker:
         if ref_id >= 0:
             ref = ref_id
             T_cr = frame.T_cw @ self.map.keyframe(ref).T_wc
-        self.records.append(PoseRecord(frame_id, timestamp, ref, T_cr, self.state, self.generation))
+        matches = None
+        if T_cr is not None and self.config.refine_frame_poses:
+            idx = np.flatnonzero(frame.point_ids >= 0)  # the outliers are discarded by now
+            kp = frame.keypoints
+            matches = FrameMatches(frame.point_ids[idx], kp.uv[idx].astype(np.float32), kp.octave[idx].astype(np.uint8),
+                                   kp.scale_factors, frame.camera.K)  # fmt: skip
+        self.records.append(PoseRecord(frame_id, timestamp, ref, T_cr, self.state, self.generation, matches=matches))

@@ -266,10 +266,12 @@ class LiveViz:
             self._gt.append(np.asarray(record.T_wc)[:3, 3])
         self.logger.log_trajectory(np.stack([T_wc[:3, 3], T_wc_now[:3, 3]]), int(result.frame.id))
 
-    def _replace_trajectory(self, system: Any, index: int) -> None:
-        """Camera centres rebuilt from the (corrected) keyframes replace the tracked ones."""
+    def _replace_trajectory(self, system: Any, index: int, final: bool = False) -> None:
+        """Camera centres rebuilt from the (corrected) keyframes replace the tracked ones;
+        ``final``: as CameraTrajectory.txt holds them (each frame optimised again against
+        the final map), not done mid-run."""
         with system.map.lock:
-            traj = system.camera_trajectory()
+            traj = system.camera_trajectory(refine=final)
         centres = traj.poses[:, :3, 3] if len(traj) else np.zeros((0, 3))
         self.logger.log_trajectory(centres, index)
         self._est.clear()
@@ -305,7 +307,7 @@ class LiveViz:
             if self._last_index is not None:
                 index = self._last_index
                 self.logger.log_map(map_snapshot_of(system), index)
-                self._replace_trajectory(system, index)
+                self._replace_trajectory(system, index, final=True)
                 self._log_ground_truth(index)
         finally:
             self.logger.close()
