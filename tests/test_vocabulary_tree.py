@@ -6,7 +6,8 @@ import pytest
 import vocab_fixtures as vf
 
 from orbslam_hgcn.compiled import descriptor_words
-from orbslam_hgcn.vocabulary.descriptors import hamming_matrix, segment_centres
+from orbslam_hgcn.match.hamming import hamming_matrix
+from orbslam_hgcn.vocabulary.descriptors import segment_centres
 from orbslam_hgcn.vocabulary.orb_tree import train_tree_vocabulary
 
 

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from orbslam_hgcn.compiled import jit, popcount64
+from orbslam_hgcn.compiled import descriptor_words, jit, popcount64
 from orbslam_hgcn.match.hamming import hamming_matrix
 
 log = logging.getLogger(__name__)
@@ -46,7 +46,7 @@ def distinctive_descriptors(desc: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     desc = np.ascontiguousarray(desc, dtype=np.uint8)
     sizes = np.asarray(sizes, dtype=np.int64)
     starts = np.cumsum(sizes) - sizes
-    return desc[_distinctive_rows(desc.view(np.uint64), starts, sizes)]
+    return desc[_distinctive_rows(descriptor_words(desc), starts, sizes)]
 
 
 @jit

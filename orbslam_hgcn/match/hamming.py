@@ -11,49 +11,36 @@ import logging
 
 import numpy as np
 
+from orbslam_hgcn.compiled import descriptor_words
+
 log = logging.getLogger(__name__)
 
 TH_HIGH = 100  # loose descriptor distance (tracking by projection)
 TH_LOW = 50  # strict descriptor distance (initialisation, BoW, triangulation, fusion)
 HISTO_LENGTH = 30  # bins of the rotation-consistency histogram
 
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
-
-
-def _popcount(x: np.ndarray) -> np.ndarray:
-    if hasattr(np, "bitwise_count"):
-        return np.bitwise_count(x)
-    return _POPCOUNT[x]
+_CHUNK = 65536  # rows of A times rows of B per step of hamming_matrix (bounds its temporaries)
 
 
 def hamming_pairs(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
     """(K,) int32 Hamming distances between row-aligned descriptors.
 
-    desc_a, desc_b: (K, 32) uint8 (any equal byte length).
+    desc_a, desc_b: (K, B) uint8 packed bits (B = 32 for ORB).
     """
-    a = np.ascontiguousarray(desc_a, dtype=np.uint8)
-    b = np.ascontiguousarray(desc_b, dtype=np.uint8)
-    if a.shape[0] == 0:
+    if len(desc_a) == 0:
         return np.zeros(0, dtype=np.int32)
-    # Popcount on 64-bit words: 4 words per 256-bit descriptor.
-    if a.shape[1] % 8 == 0:
-        a = a.view(np.uint64)
-        b = b.view(np.uint64)
-    return _popcount(a ^ b).sum(axis=1, dtype=np.int32)
+    return np.bitwise_count(descriptor_words(desc_a) ^ descriptor_words(desc_b)).sum(axis=1, dtype=np.int32)
 
 
-def hamming_matrix(desc_a: np.ndarray, desc_b: np.ndarray, block: int = 512) -> np.ndarray:
-    """(A, B) int32 Hamming distances between all rows of desc_a (A, 32) and desc_b (B, 32)."""
-    a = np.ascontiguousarray(desc_a, dtype=np.uint8)
-    b = np.ascontiguousarray(desc_b, dtype=np.uint8)
-    out = np.zeros((len(a), len(b)), dtype=np.int32)
-    if len(a) == 0 or len(b) == 0:
-        return out
-    if a.shape[1] % 8 == 0:
-        a = a.view(np.uint64)
-        b = b.view(np.uint64)
-    for i in range(0, len(a), block):
-        out[i : i + block] = _popcount(a[i : i + block, None, :] ^ b[None, :, :]).sum(axis=2, dtype=np.int32)
+def hamming_matrix(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
+    """(A, B) int32 Hamming distances between all rows of desc_a (A, L) and desc_b (B, L)
+    uint8 packed bits: popcounts of the XOR of their 64-bit words, a block of rows of A at
+    a time."""
+    a64, b64 = descriptor_words(desc_a), descriptor_words(desc_b)
+    out = np.empty((len(a64), len(b64)), np.int32)
+    step = max(1, _CHUNK // max(len(b64), 1))
+    for s in range(0, len(a64), step):
+        out[s : s + step] = np.bitwise_count(a64[s : s + step, None, :] ^ b64[None]).sum(-1, dtype=np.int32)
     return out
 
 

@@ -13,13 +13,10 @@ import logging
 
 import numpy as np
 
-from orbslam_hgcn.compiled import descriptor_words
-
 log = logging.getLogger(__name__)
 
 BINARY = "binary"
 FLOAT = "float"
-_CHUNK = 65536  # rows per chunk in the pairwise-distance helper (bounds temporary memory)
 _SUM_CHUNK = 2048  # rows per chunk when summing segments: small blocks stay in cache (measured
 # about 3x faster than 64k-row blocks for unpacked-bit sums)
 
@@ -45,16 +42,6 @@ def dist_to_candidates(x: np.ndarray, cand: np.ndarray, kind: str) -> np.ndarray
         return np.bitwise_count(np.bitwise_xor(x[:, None, :], cand)).sum(axis=-1, dtype=np.int32)
     diff = cand - x[:, None, :]
     return np.einsum("nkd,nkd->nk", diff, diff)
-
-
-def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(N, M) int32 Hamming distances between (N, B) and (M, B) uint8 descriptors."""
-    a64, b64 = descriptor_words(a), descriptor_words(b)
-    out = np.empty((len(a64), len(b64)), np.int32)
-    step = max(1, _CHUNK // max(len(b64), 1))
-    for s in range(0, len(a64), step):
-        out[s : s + step] = np.bitwise_count(a64[s : s + step, None, :] ^ b64[None]).sum(-1, dtype=np.int32)
-    return out
 
 
 def segment_centres(xs: np.ndarray, starts: np.ndarray, kind: str) -> np.ndarray:

@@ -19,7 +19,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from tqdm import tqdm
 
-from orbslam_hgcn.vocabulary.descriptors import hamming_matrix
+from orbslam_hgcn.match.hamming import hamming_matrix
 
 log = logging.getLogger(__name__)
 
