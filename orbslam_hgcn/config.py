@@ -836,7 +836,8 @@ class ThreadsConfig:
     # runs). Those runs were on an AMD EPYC machine; on an Intel Xeon one the same code
     # gives 49 keyframes, 43.86 cm and 42.85 cm in every run, paced or unpaced, idle or
     # beside other jobs (sequential: 53 keyframes, 45.51 cm): still one map whatever the
-    # load, but not the same map on every CPU.
+    # load, but not the same map on every CPU. (Camera ATE 42.70 cm since the frames are
+    # optimised again at the end, tracking.refine_frame_poses.)
     mapping_sync: str = "points"
     # Threads that OpenCV's and faiss's (OpenMP) pools may start in the process that tracks
     # and maps (System.run sets them, stats.json records them; the extraction process uses

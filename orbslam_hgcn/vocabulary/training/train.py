@@ -22,12 +22,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
 from orbslam_hgcn.config import HgcnTrainConfig, ORBConfig, TreeTrainConfig
-from orbslam_hgcn.datasets.base import IMAGE_SUFFIXES
+from orbslam_hgcn.datasets.base import IMAGE_SUFFIXES, read_image
 from orbslam_hgcn.errors import ConfigError, DatasetError, OrbslamError, VocabularyError
 from orbslam_hgcn.npzfile import atomic_save_npz, read_npz
 from orbslam_hgcn.engine import Engine
@@ -48,15 +47,8 @@ class ImageSource:
     load: Callable[[int], np.ndarray]
 
 
-def _read_gray(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if img is None or img.size == 0:
-        raise DatasetError(f"{path}: cannot read image (corrupt or unsupported format)")
-    return img
-
-
 def _file_source(name: str, files: list[Path]) -> ImageSource:
-    return ImageSource(name, len(files), lambda i: _read_gray(files[i]))
+    return ImageSource(name, len(files), lambda i: read_image(files[i]))
 
 
 def open_image_source(path: str | Path) -> ImageSource:
