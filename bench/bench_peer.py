@@ -26,7 +26,9 @@ Both keyframe trajectories are scored the same way: ATE after Sim(3) alignment a
 dataset's ground truth, through :func:`orbslam_hgcn.app.run.trajectory_ate`.
 
 Printed per run and system: frames given, frames tracked, frames lost, maps started,
-keyframes, keyframe ATE, frames/s, the median time from an image to its pose, wall time (first
+keyframes, keyframe ATE, frames/s, the median time from an image to its pose (ours from the
+start of its extraction, which an unpaced run starts up to ``threads.prefetch_frames`` frames
+ahead of the tracker; ORB-SLAM3's ``TrackMonocular`` call), wall time (first
 frame to shutdown, the same span for both), start-up time (not in the wall time: ours starts
 its extraction and local BA processes, ORB-SLAM3 loads its vocabulary) and CPU time; then the
 median over the runs. The ORB-SLAM3 process needs ``pyorbslam3`` and the
@@ -628,7 +630,10 @@ def main() -> int:
           "wall s: ours, stats.json real_time.frames_wall_s (first frame's extraction to its stages drained); "
           "ORB-SLAM3, first frame to Shutdown() returned. start s (not in wall s): ours, the start of its "
           "extraction and local BA processes; ORB-SLAM3, loading its vocabulary and settings. ms/frame: median "
-          "from an image to its pose. CPU s: the whole process tree, start-up included.")
+          "from an image to its pose: ours from the start of the frame's extraction (unpaced, up to "
+          "threads.prefetch_frames frames ahead of the tracker: the wait in that queue counts), ORB-SLAM3 its "
+          "TrackMonocular call (frames waiting in the pipe do not count). CPU s: the whole process tree, "
+          "start-up included.")
     header = " ".join(f"{name:<{w}s}" if name == "system" else f"{name:>{w}s}" for name, w in COLUMNS)
     print(header)
     rows: dict[str, list[dict[str, Any]]] = {"orbslam-hgcn": [], "ORB-SLAM3": []}
