@@ -168,13 +168,15 @@ def read_image(path: Path, *, color: bool = False, source: str | None = None) ->
         raise DatasetError(f"{path}: image file not found{listed}")
     if path.stat().st_size == 0:
         raise DatasetError(f"{path}: empty image file (0 bytes){listed}")
-    image = None
     if path.suffix.lower() == ".png":  # the datasets' format: decoded here when it can be
         try:
-            image = decode_png(path.read_bytes(), color)
+            data = path.read_bytes()
         except OSError as exc:
             raise DatasetError(f"{path}: cannot read image ({exc.strerror}){listed}") from None
-    if image is None:
+        image = decode_png(data, color)
+        if image is None:  # a PNG this decoder does not take: OpenCV's, from the same bytes
+            image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    else:
         image = cv2.imread(str(path), flags)
     if image is None or image.size == 0:
         raise DatasetError(f"{path}: cannot read image (corrupt, truncated or unsupported format){listed}")

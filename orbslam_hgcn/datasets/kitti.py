@@ -24,6 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from orbslam_hgcn.datasets.png import SIGNATURE
 from orbslam_hgcn.errors import DatasetError, where
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.trajectory import Trajectory
@@ -81,7 +82,7 @@ def image_size(path: Path) -> tuple[int, int]:
             head = fh.read(24)
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read image ({exc.strerror})") from None
-    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+    if head[:8] == SIGNATURE and head[12:16] == b"IHDR":
         w, h = struct.unpack(">II", head[16:24])
         return int(w), int(h)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
