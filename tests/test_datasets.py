@@ -465,5 +465,12 @@ def test_factory_detection_and_errors(tmp_path, tum_layout, euroc_layout):
         detect_kind(tmp_path / "nothing")
     with pytest.raises(DatasetError, match=r"cannot tell the dataset kind"):
         detect_kind(tmp_path)
+    # The root of a KITTI odometry download names its sequences and the folder to run.
+    for name in ("04", "00"):
+        (tmp_path / "sequences" / name).mkdir(parents=True)
+        (tmp_path / "sequences" / name / "times.txt").write_text("0.0\n")
+    with pytest.raises(DatasetError, match=r"a KITTI odometry folder holding sequences 00, 04; run one of them, "
+                       r"e\.g\. .*sequences/00$"):
+        detect_kind(tmp_path)
     with pytest.raises(DatasetError, match=r"unknown dataset kind 'bag'"):
         open_sequence("bag", tmp_path)

@@ -52,6 +52,11 @@ def detect_kind(path: str | Path) -> str:
         return "kitti"
     if any(c.is_file() and c.suffix.lower() in IMAGE_SUFFIXES for c in p.iterdir()):
         return "folder"
+    if (p / "sequences").is_dir():  # the root of the KITTI odometry download
+        seqs = sorted(c.name for c in (p / "sequences").iterdir() if (c / "times.txt").is_file())
+        if seqs:
+            raise DatasetError(f"{p}: a KITTI odometry folder holding sequences {', '.join(seqs)}; "
+                               f"run one of them, e.g. {p / 'sequences' / seqs[0]}")
     raise DatasetError(
         f"{p}: cannot tell the dataset kind (no rgb.txt, mav0/, times.txt + image_0/ or images); "
         f"name it: one of {', '.join(KINDS)}"
