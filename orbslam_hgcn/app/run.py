@@ -81,6 +81,53 @@ def camera_from_config(path: str | Path | None) -> PinholeCamera | None:
     return None
 
 
+def camera_source(path: str | Path, kind: str, config: str | Path | None) -> str:
+    """Where the camera of a run comes from: ``config`` (--config, when it holds a camera),
+    else the dataset's own calibration (a TUM folder's ``camera.yaml``, else its folder
+    name; KITTI's ``calib.txt``; EuRoC's ``sensor.yaml``)."""
+    if config is not None:
+        return str(config)
+    p = Path(path).expanduser()
+    kind = kind.lower()
+    if kind == "tum":
+        if (p / "camera.yaml").is_file():
+            return str(p / "camera.yaml")
+        from orbslam_hgcn.datasets.tum import infer_tum_camera
+
+        name = infer_tum_camera(p.resolve())
+        return f"{name} (from the folder name)" if name else "the dataset"
+    if kind == "kitti":
+        return str(p / "calib.txt")
+    if kind == "euroc":
+        return "the dataset's sensor.yaml"
+    return "the dataset"
+
+
+def settings_source(camera: PinholeCamera, settings_path: Path | None, kind: str) -> str | None:
+    """How the shipped stage settings of a run were chosen (see
+    :func:`~orbslam_hgcn.config.dataset_settings`): ``"camera"`` when the shipped config has
+    the run's camera, ``"kind"`` when it is the default of the dataset kind's family (the
+    camera matches no shipped config), None when there are none."""
+    if settings_path is None:
+        return None
+    matched, _ = dataset_settings(camera, None)  # without a kind: a camera match only
+    return "camera" if matched == settings_path else "kind"
+
+
+def settings_line(camera_origin: str, settings_path: Path | None, chosen_by: str | None,
+                  config: str | Path | None) -> str:
+    """The log line that says where a run's camera and stage settings come from."""
+    line = f"camera from {camera_origin}; "
+    if settings_path is None:
+        line += "stage settings: the defaults"
+    elif chosen_by == "camera":
+        line += f"stage settings of {settings_path.stem} (its camera is this camera)"
+    else:
+        line += (f"stage settings of {settings_path.stem} (the defaults for this kind of dataset: the camera "
+                 "matches no shipped config)")
+    return line + (f", then {config}" if config is not None else "")
+
+
 def trajectory_ate(gt: Trajectory, est: Trajectory) -> dict[str, Any]:
     """ATE of ``est`` after Sim(3) alignment: rmse/mean/median/max (m), pairs, scale; or
     {"error": reason} when it cannot be computed."""
@@ -178,10 +225,11 @@ def run_dataset(
     Configs.from_layers([(user_layer, config or "")])  # a bad --config fails before the dataset is read
     camera = camera_from_config(config)
     sequence = open_sequence(kind, path, camera)
-    settings_path, settings = dataset_settings(sequence.camera, kind or detect_kind(path))
-    if settings_path is not None:
-        log.info("stage settings of %s (the dataset's camera)%s", settings_path.stem,
-                 f", then {config}" if config is not None else "")  # fmt: skip
+    dataset_kind = kind or detect_kind(path)
+    settings_path, settings = dataset_settings(sequence.camera, dataset_kind)
+    camera_origin = camera_source(path, dataset_kind, config if camera is not None else None)
+    settings_origin = settings_source(sequence.camera, settings_path, dataset_kind)
+    log.info("%s", settings_line(camera_origin, settings_path, settings_origin, config))
     configs = Configs.from_layers([(settings, settings_path or ""), (user_layer, config or "")])
     if speed is not None:
         configs = dataclasses.replace(configs, threads=dataclasses.replace(configs.threads, speed=speed))
@@ -242,7 +290,9 @@ def run_dataset(
     extra = {
         "dataset": {"path": str(path), "kind": kind or "auto", "name": sequence.name, "frames": len(sequence)},
         "settings": {
+            "camera": camera_origin,
             "dataset": settings_path.stem if settings_path is not None else None,
+            "dataset_chosen_by": settings_origin,
             "config": str(config) if config is not None else None,
             "orb_features": configs.orb.n_features,
         },

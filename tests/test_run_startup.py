@@ -1,0 +1,83 @@
+"""What ``orbslam-hgcn run`` says before its first frame: where the camera and the stage
+settings come from, and that the first run after an install compiles the kernels."""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from orbslam_hgcn.config import camera_to_dict
+from orbslam_hgcn.geometry.camera import PinholeCamera
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+class _Stop(Exception):
+    """Raised where the system would be built: the test needs only what comes before."""
+
+
+def _tum_folder(root: Path, camera: PinholeCamera, name: str = "seq") -> Path:
+    """A TUM-layout folder (rgb.txt, two images) with ``camera`` in its camera.yaml."""
+    import yaml
+
+    folder = root / name
+    (folder / "rgb").mkdir(parents=True)
+    for i in range(2):
+        cv2.imwrite(str(folder / "rgb" / f"{i}.png"), np.full((camera.height, camera.width), 100, np.uint8))
+    (folder / "rgb.txt").write_text("0.000000 rgb/0.png\n0.033333 rgb/1.png\n")
+    (folder / "camera.yaml").write_text(yaml.safe_dump(camera_to_dict(camera), sort_keys=False))
+    return folder
+
+
+def _settings_logged(folder: Path, out: Path, caplog, monkeypatch, config: str | None = None) -> str:
+    import orbslam_hgcn.app.run as run_mod
+
+    def stop(*a, **k):
+        raise _Stop()
+
+    monkeypatch.setattr(run_mod, "open_vocabulary", lambda *a, **k: None)
+    monkeypatch.setattr(run_mod, "System", stop)
+    caplog.set_level(logging.INFO, logger="orbslam_hgcn")
+    with pytest.raises(_Stop):
+        run_mod.run_dataset(folder, out, config=config, progress=False)
+    lines = [r.getMessage() for r in caplog.records if "stage settings" in r.getMessage()]
+    assert len(lines) == 1, [r.getMessage() for r in caplog.records]
+    return lines[0]
+
+
+def test_run_names_camera_yaml_and_why_the_settings(tmp_path, caplog, monkeypatch):
+    """A TUM-layout folder whose camera.yaml holds a camera no shipped config has: the log
+    names camera.yaml as the camera's source and says the stage settings are the TUM
+    family's defaults, not those of "the dataset's camera"."""
+    odd = PinholeCamera(fx=600.0, fy=600.0, cx=320.0, cy=240.0, width=640, height=480, name="rendered")
+    folder = _tum_folder(tmp_path, odd, "rgbd_dataset_freiburg1_desk")  # the folder name says fr1: not used
+    line = _settings_logged(folder, tmp_path / "out", caplog, monkeypatch)
+    assert "the dataset's camera" not in line
+    assert f"camera from {folder / 'camera.yaml'}" in line
+    assert "stage settings of tum_fr1 (the defaults for this kind of dataset: the camera matches no shipped config)" \
+        in line
+
+
+def test_run_says_when_the_settings_follow_the_camera(tmp_path, caplog, monkeypatch):
+    """camera.yaml with the freiburg3 camera: the settings of tum_fr3, chosen by the camera."""
+    fr3 = PinholeCamera(fx=535.4, fy=539.2, cx=320.1, cy=247.6, width=640, height=480, name="fr3")
+    folder = _tum_folder(tmp_path, fr3)
+    line = _settings_logged(folder, tmp_path / "out", caplog, monkeypatch)
+    assert line == f"camera from {folder / 'camera.yaml'}; stage settings of tum_fr3 (its camera is this camera)"
+
+
+def test_run_names_config_as_the_cameras_source(tmp_path, caplog, monkeypatch):
+    """--config with a camera wins over camera.yaml, and the log says so."""
+    odd = PinholeCamera(fx=600.0, fy=600.0, cx=320.0, cy=240.0, width=640, height=480, name="rendered")
+    folder = _tum_folder(tmp_path, odd)
+    line = _settings_logged(folder, tmp_path / "out", caplog, monkeypatch, config="tum_fr2")
+    assert line.startswith("camera from ") and "tum_fr2.yaml; stage settings of tum_fr2 (its camera" in line
+    assert line.endswith("tum_fr2.yaml")  # then --config
