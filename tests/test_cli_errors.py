@@ -4,7 +4,10 @@ stderr, before any work and without a traceback; Ctrl-C and SIGTERM give 130 and
 and the commands with results (compare, demo, sweep) keep those made so far.
 
 The commands are called in-process (``cli.main``); the signals are real ones, sent to this
-process at a point where the command is working."""
+process at a point where the command is working. Each test sets the SIGINT disposition it
+tests (Python's own handler, as in a foreground job) rather than inheriting it: a shell
+starts a background job (``nohup``, ``&`` in a script) with SIGINT ignored, and the command
+rightly leaves an ignored SIGINT ignored."""
 
 from __future__ import annotations
 
@@ -21,6 +24,14 @@ import pytest
 from orbslam_hgcn import cli
 
 GT = Path(__file__).resolve().parent / "data" / "tum_fr3_long_office_household_groundtruth.txt"
+
+
+@pytest.fixture(autouse=True)
+def ctrl_c_raises():
+    """SIGINT raises KeyboardInterrupt during the test, whatever this process inherited."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
 
 
 @pytest.fixture(scope="module")

@@ -702,7 +702,18 @@ def test_tracking_first_lock_lets_the_priority_waiter_in_first():
 
 def test_ctrl_c_while_waiting_for_the_lock_is_a_keyboard_interrupt():
     """SIGINT reaches the main thread (the tracker) while it waits with priority: the wait
-    ends with KeyboardInterrupt (not an error of the lock), and the lock is left usable."""
+    ends with KeyboardInterrupt (not an error of the lock), and the lock is left usable.
+    SIGINT raises here even where this process inherited it ignored (a background job)."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _ctrl_c_while_waiting_for_the_lock()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _ctrl_c_while_waiting_for_the_lock() -> None:
     import signal
 
     lock = TrackingFirstLock()
