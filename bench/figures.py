@@ -1,22 +1,29 @@
-"""The figures the README quotes, kept as JSON files beside the benches that print them.
+"""The recorded figures: JSON files beside the benches that print them, rendered into
+docs/RESULTS.md (every figure, with plots) and the README's "Where it stands" (a few key lines).
 
-A bench whose figures the README's "Where it stands" quotes calls :func:`record` (through
-its ``--record NAME`` option) after it has printed them. That writes
-``bench/results/NAME.json``: the figures as printed, the command line, the commit it ran
-on, the machine and its load average before and after. It refuses to write when the code
-the figures measure (``measures``: the package and the bench itself by default) has
-uncommitted changes, since the commit would then not be the code that was measured.
+A bench whose figures are quoted calls :func:`record` (through its ``--record NAME`` option)
+after it has printed them. That writes ``bench/results/NAME.json``: the figures as printed,
+the command line, the commit it ran on, the machine and its load average before and after.
+It refuses to write when the code the figures measure (``measures``: the package and the
+bench itself by default) has uncommitted changes, since the commit would then not be the
+code that was measured.
 
-``python bench/figures.py --write-readme`` renders every result file as one table row into
-README.md, between the markers ``<!-- figures:begin -->`` and ``<!-- figures:end -->``.
-``python bench/figures.py --check`` (run by the test suite) fails when that block differs
-from what the files give, when a file's commit is not in the history, or when the code a
-figure measures changed after the commit it was measured at. A figure therefore has to be
-measured again, and recorded, whenever the code under it changes.
+``python bench/figures.py --write`` (or ``--write-readme``) renders every result file into
+docs/RESULTS.md (tables, and PNG plots in docs/figures/) and the key figures into README.md,
+between the markers ``<!-- figures:begin -->`` and ``<!-- figures:end -->``.
+
+A figure older than the code it measures (a file under ``measures`` changed between the
+commit it was recorded at and HEAD) is marked "code changed since COMMIT" on both pages.
+The mark is computed from the result files and the git history only, so the pages are the
+same for everyone at one commit. ``python bench/figures.py --check`` (run by the test suite)
+lists such figures as notices and still exits 0; it fails (exit 1) when a page differs from
+what the files give, when a result file's commit is not in the history, or when a plot the
+page shows is missing. The comparison ignores the "code changed since" marks, so committing
+code alone never fails it: the marks appear on the pages the next time they are written.
 
 Usage::
 
-    python bench/figures.py --write-readme
+    python bench/figures.py --write
     python bench/figures.py --check
 """
 
@@ -26,16 +33,43 @@ import argparse
 import json
 import os
 import platform
+import re
 import shlex
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
 README = REPO / "README.md"
+RESULTS_PAGE = REPO / "docs" / "RESULTS.md"
+PLOTS = REPO / "docs" / "figures"
 BEGIN, END = "<!-- figures:begin -->", "<!-- figures:end -->"
+
+# The README's key lines: (result name, figure label, the parts of its value to quote,
+# wording). Parts are the comma-separated pieces of the value; a part is quoted when it
+# starts with one of the prefixes (all parts for None). A line whose result or figure is
+# not recorded is left out.
+KEY_LINES = [
+    ("kitti00_load", "kitti00/none/threaded", ("3 runs", "tracked", "keyframe ATE", "camera ATE", "frame latency"),
+     "KITTI 00 frames 0-159, `orbslam-hgcn run` defaults, paced"),
+    ("kitti00_load", "kitti00/hog/threaded", ("tracked", "keyframe ATE", "camera ATE"),
+     "the same beside a busy process at normal priority"),
+    ("words_in_system", "kmeans", ("words", "insert step", "tracked", "keyframe ATE"),
+     "KITTI 00 unpaced, k-means words (ratios against the ORB tree)"),
+    ("track_words", "8000 words, AP", None, "place recognition AP, 20 rendered offices, 8000 words"),
+    ("track_words_street", "8000 words, AP", None, "the same, 8 rendered street drives"),
+    ("track_words_kitti", "8000 words, false positives of 44 queries", None,
+     "real KITTI 00 (no revisit), false detections of 44 queries"),
+]
+
+STALE_WORDS = "code changed since"
+_MARK = re.compile(r" ?\*\*code changed since [0-9a-f]{7,40}\*\*")
+_MARK_LINE = re.compile(r"^\*\*code changed since [0-9a-f]{7,40}\*\*:[^\n]*\n\n", re.M)
+_CONTRAST = re.compile(r"^(\S+) ([+-]?[\d.]+) \[([+-]?[\d.]+), ([+-]?[\d.]+)\](?: (\d+/\d+))?(?: Holm p (\S+))?$")
+_ATE = re.compile(r"keyframe ATE ([\d.]+) cm")
 
 
 def _git(*args: str) -> subprocess.CompletedProcess:
@@ -54,9 +88,9 @@ def _cpu() -> str:
 
 def record(name: str, title: str, figures: list[tuple[str, str]], *, bench_file: str,
            measures: list[str] | None = None, load_start: float | None = None, notes: str = "") -> Path | None:
-    """Write ``bench/results/NAME.json`` for the README's figures table (see the module text).
+    """Write ``bench/results/NAME.json`` for the results page (see the module text).
 
-    ``figures``: (label, value as printed) pairs, in the order the README shows them;
+    ``figures``: (label, value as printed) pairs, in the order the page shows them;
     ``bench_file``: the bench's ``__file__``; ``measures``: paths, relative to the repository,
     whose code the figures depend on (default: the package and the bench file); ``load_start``:
     the 1-minute load average when the bench started. Returns the path written, or None (with
@@ -94,15 +128,176 @@ def load_results(folder: Path = RESULTS) -> list[dict]:
     return [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
 
 
-def render(results: list[dict]) -> str:
-    """The README block: one table row per result file."""
-    rows = ["| what | figures | command | commit, load |", "|---|---|---|---|"]
+# --- staleness ---------------------------------------------------------------------------
+def known_commit(commit: str) -> bool:
+    return _git("cat-file", "-e", f"{commit}^{{commit}}").returncode == 0
+
+
+def staleness(results: list[dict]) -> dict[str, list[str]]:
+    """Result name -> the files it measures that changed between its commit and HEAD (only
+    results with such files; a result whose commit is unknown is left out: see problems)."""
+    out = {}
     for r in results:
-        figs = "; ".join(f"{k} {v}" for k, v in r["figures"])
-        load = "" if r.get("load_start") is None else f", load {r['load_start']:.2f}-{r['load_end']:.2f}"
-        note = f" ({r['notes']})" if r.get("notes") else ""
-        rows.append(f"| {r['title']}{note} | {figs} | `{r['command']}` | {r['commit']}{load} |")
-    return "\n".join(rows)
+        if not known_commit(r["commit"]):
+            continue
+        changed = _git("diff", "--name-only", r["commit"], "HEAD", "--", *r["measures"]).stdout.split()
+        if changed:
+            out[r["name"]] = changed
+    return out
+
+
+def mark(r: dict, stale: dict[str, list[str]]) -> str:
+    """The inline mark of a stale result ("" when current)."""
+    return f" **{STALE_WORDS} {r['commit']}**" if r["name"] in stale else ""
+
+
+def normalise(text: str) -> str:
+    """A page with its "code changed since" marks taken out."""
+    return _MARK.sub("", _MARK_LINE.sub("", text))
+
+
+# --- parsing the printed values ----------------------------------------------------------
+def _parts(value: str) -> list[tuple[str, str]]:
+    """(key, value) pieces of a printed value: 'tracked 160 of 160, resets 0' ->
+    [('tracked', '160 of 160'), ('resets', '0')]; '28.6 frames/s' -> [('frames/s', '28.6 frames/s')]."""
+    out = []
+    m = re.match(r"^(\d+) (runs?): (.*)$", value)
+    if m:
+        out.append((m.group(2), m.group(1)))
+        value = m.group(3)
+    for part in re.split(r", (?![^\[(]*[\])])", value):
+        part = part.strip()
+        m = re.match(r"^(.*?[^\d\s.+-][^\s]*)\s+([-+]?\d.*)$", part)
+        if m:
+            out.append((m.group(1), m.group(2)))
+            continue
+        m = re.match(r"^[-+]?[\d.]+\s+(\S+)", part)
+        out.append((m.group(1) if m else "", part))
+    return out
+
+
+def contrasts(value: str) -> list[tuple[str, ...]] | None:
+    """'B0-A0 +0.022 [+0.002, +0.043] 13/7 Holm p 1; ...' -> [(contrast, difference, low,
+    high, wins/losses, Holm p)], or None when the value is not such a list."""
+    items = [s.strip() for s in value.split(";")]
+    found = [_CONTRAST.match(s) for s in items]
+    if not items or not all(found):
+        return None
+    return [tuple(g or "" for g in m.groups()) for m in found]
+
+
+def _cell(s: str) -> str:
+    return s.replace("|", "\\|")
+
+
+# --- the results page --------------------------------------------------------------------
+def _plot_names(results: list[dict]) -> dict[str, str]:
+    """Plot file name -> what it shows, for the plots the results give."""
+    out = {}
+    if any(_ATE.search(f"{k} {v}") for r in results for k, v in r["figures"]):
+        out["keyframe_ate.png"] = "keyframe ATE"
+    for r in results:
+        if any(contrasts(v) for _, v in r["figures"]):
+            out[f"{r['name']}_contrasts.png"] = r["name"]
+    return out
+
+
+def _table(r: dict) -> list[str]:
+    """The result's figures that are not contrast lists, one row per key, one column per figure."""
+    plain = [(k, v) for k, v in r["figures"] if contrasts(v) is None]
+    if not plain:
+        return []
+    cols = [k for k, _ in plain]
+    rows: dict[str, dict[str, str]] = {}
+    for label, value in plain:
+        for key, val in _parts(value):
+            rows.setdefault(key, {})[label] = val
+    if len(cols) == 1:
+        return ["| | " + _cell(cols[0]) + " |", "|---|---|",
+                *[f"| {_cell(k)} | {_cell(v.get(cols[0], ''))} |" for k, v in rows.items()]]
+    out = ["| | " + " | ".join(_cell(c) for c in cols) + " |", "|---" * (len(cols) + 1) + "|"]
+    for key, vals in rows.items():
+        out.append(f"| {_cell(key)} | " + " | ".join(_cell(vals.get(c, "")) for c in cols) + " |")
+    return out
+
+
+def _contrast_table(r: dict) -> list[str]:
+    rows = []
+    for label, value in r["figures"]:
+        for c in contrasts(value) or []:
+            rows.append(f"| {_cell(label)} | {c[0]} | {c[1]} | [{c[2]}, {c[3]}] | {c[4]} | {c[5]} |")
+    if not rows:
+        return []
+    return ["| figure | contrast | difference | 95% CI | wins/losses | Holm p |", "|---|---|---|---|---|---|", *rows]
+
+
+def render_results(results: list[dict], stale: dict[str, list[str]]) -> str:
+    """docs/RESULTS.md: an index, then per result its provenance, tables and plots."""
+    plots = _plot_names(results)
+    out = [
+        "# Recorded results",
+        "",
+        "Written by `python bench/figures.py --write` from `bench/results/*.json`; do not edit by hand",
+        "(`python bench/figures.py --check`, run by the test suite, fails when this page differs from",
+        "the files). Each file is written by a bench's `--record NAME` with the command, the commit it",
+        "ran on, the date, the machine and its 1-minute load average at the start and the end (about 1",
+        f"while nothing runs beside the bench). A result marked **{STALE_WORDS} COMMIT** was measured",
+        "on older code than this page's commit: a file it measures has changed since; run its command",
+        "again and record it.",
+        "",
+        "| result | figures | commit | date | load |",
+        "|---|---|---|---|---|",
+    ]
+    for r in results:
+        out.append(f"| [{r['name']}](#{r['name']}) | {len(r['figures'])} | {r['commit']}{mark(r, stale)} "
+                   f"| {r.get('date', '')} | {_load(r)} |")  # fmt: skip
+    if "keyframe_ate.png" in plots:
+        out += ["", "Keyframe ATE of every recorded run that prints one (Sim(3)-aligned, cm):", "",
+                "![keyframe ATE](figures/keyframe_ate.png)"]
+    for r in results:
+        out += ["", f"## {r['name']}", "", r["title"] + ".", ""]
+        if r["name"] in stale:
+            files = stale[r["name"]]
+            shown = ", ".join(f"`{f}`" for f in files[:3]) + (f" and {len(files) - 3} more" if len(files) > 3 else "")
+            out += [f"**{STALE_WORDS} {r['commit']}**: {shown} changed since it was measured.", ""]
+        out += ["| recorded | |", "|---|---|", f"| command | `{_cell(r['command'])}` |", f"| commit | {r['commit']} |",
+                f"| date | {r.get('date', '')} |", f"| machine | {_cell(r.get('machine', ''))} |",
+                f"| load | {_load(r)} |", f"| measures | {', '.join(f'`{m}`' for m in r['measures'])} |"]
+        if r.get("notes"):
+            out.append(f"| notes | {_cell(r['notes'])} |")
+        for block in (_table(r), _contrast_table(r)):
+            if block:
+                out += ["", *block]
+        png = f"{r['name']}_contrasts.png"
+        if png in plots:
+            out += ["", f"![{r['name']} contrasts](figures/{png})"]
+    return "\n".join(out) + "\n"
+
+
+def _load(r: dict) -> str:
+    if r.get("load_start") is None:
+        return "" if r.get("load_end") is None else f"end {r['load_end']:.2f}"
+    return f"{r['load_start']:.2f}-{r['load_end']:.2f}"
+
+
+# --- the README's key lines --------------------------------------------------------------
+def render_key(results: list[dict], stale: dict[str, list[str]]) -> str:
+    """The README block: a few key figures, each naming its result file and commit."""
+    by_name = {r["name"]: r for r in results}
+    lines = []
+    for name, label, keep, words in KEY_LINES:
+        r = by_name.get(name)
+        value = dict(r["figures"]).get(label) if r else None
+        if value is None:
+            continue
+        parts = [p.strip() for p in re.split(r", (?![^\[(]*[\])])", value)]
+        if keep is not None:
+            parts = [p for p in parts if p.startswith(keep)]
+        text = f"- {words}: {', '.join(parts)} ([{name}](docs/RESULTS.md#{name}), {r['commit']})"
+        lines += textwrap.wrap(text, 150, subsequent_indent="  ", break_on_hyphens=False)
+        lines[-1] += mark(r, stale)
+    lines.append("- Every recorded figure, with its command, commit, machine and load: [docs/RESULTS.md](docs/RESULTS.md).")
+    return "\n".join(lines)
 
 
 def readme_block(text: str) -> str:
@@ -112,37 +307,109 @@ def readme_block(text: str) -> str:
     return text.split(BEGIN, 1)[1].split(END, 1)[0].strip()
 
 
-def problems(results: list[dict], readme_text: str) -> list[str]:
-    """Why the README's figures and the result files disagree (empty when they agree)."""
-    out = []
-    if readme_block(readme_text) != render(results):
-        out.append("the README's figures block differs from bench/results/*.json "
-                   "(python bench/figures.py --write-readme)")  # fmt: skip
+# --- plots -------------------------------------------------------------------------------
+def write_plots(results: list[dict], folder: Path = PLOTS) -> list[Path]:
+    """The PNGs the results page shows (matplotlib, small)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    meta = {"Software": None}
+    ates = [(f"{r['name']}: {k}", float(m.group(1))) for r in results for k, v in r["figures"]
+            if (m := _ATE.search(f"{k} {v}"))]
+    if ates:
+        fig, ax = plt.subplots(figsize=(6.4, 0.35 * len(ates) + 0.9), dpi=80)
+        ax.barh(range(len(ates)), [a for _, a in ates], color="#4a7bb7")
+        ax.set_yticks(range(len(ates)), [n for n, _ in ates], fontsize=8)
+        ax.invert_yaxis()
+        for i, (_, a) in enumerate(ates):
+            ax.text(a, i, f" {a:.2f}", va="center", fontsize=8)
+        ax.set_xlabel("keyframe ATE (cm)")
+        ax.set_xlim(0, max(a for _, a in ates) * 1.2)
+        fig.tight_layout()
+        written.append(folder / "keyframe_ate.png")
+        fig.savefig(written[-1], metadata=meta)
+        plt.close(fig)
     for r in results:
-        if _git("cat-file", "-e", f"{r['commit']}^{{commit}}").returncode != 0:
-            out.append(f"{r['name']}: commit {r['commit']} is not in this repository's history")
+        groups = [(k, c) for k, v in r["figures"] if (c := contrasts(v))]
+        if not groups:
             continue
-        changed = _git("diff", "--name-only", r["commit"], "HEAD", "--", *r["measures"]).stdout.split()
-        if changed:
-            out.append(f"{r['name']}: measured at {r['commit']}, but {len(changed)} file(s) it measures changed "
-                       f"since ({', '.join(changed[:3])}{', ...' if len(changed) > 3 else ''}): run it again")  # fmt: skip
+        fig, axes = plt.subplots(1, len(groups), figsize=(3.3 * len(groups), 0.3 * max(len(c) for _, c in groups) + 1.2),
+                                 dpi=80, squeeze=False)  # fmt: skip
+        for ax, (label, cs) in zip(axes[0], groups):
+            d = [float(c[1]) for c in cs]
+            lo = [float(c[1]) - float(c[2]) for c in cs]
+            hi = [float(c[3]) - float(c[1]) for c in cs]
+            ax.errorbar(d, range(len(cs)), xerr=[lo, hi], fmt="o", color="#b7584a", capsize=3, markersize=4)
+            ax.axvline(0, color="grey", lw=0.8)
+            ax.set_yticks(range(len(cs)), [c[0] for c in cs], fontsize=8)
+            ax.invert_yaxis()
+            ax.set_title(label, fontsize=9)
+            ax.tick_params(axis="x", labelsize=8)
+            ax.set_xlabel("difference, 95% CI", fontsize=8)
+        fig.tight_layout()
+        written.append(folder / f"{r['name']}_contrasts.png")
+        fig.savefig(written[-1], metadata=meta)
+        plt.close(fig)
+    return written
+
+
+# --- the check ---------------------------------------------------------------------------
+def problems(results: list[dict], readme_text: str, results_text: str, plots: Path = PLOTS) -> list[str]:
+    """Why the pages and the result files disagree (empty when they agree). The "code changed
+    since" marks are left out of the comparison: a stale figure is a notice, not a problem."""
+    out = []
+    stale = staleness(results)
+    if normalise(readme_block(readme_text)) != normalise(render_key(results, stale)):
+        out.append("the README's figures block differs from bench/results/*.json (python bench/figures.py --write)")
+    if normalise(results_text) != normalise(render_results(results, stale)):
+        out.append("docs/RESULTS.md differs from bench/results/*.json (python bench/figures.py --write)")
+    for name in _plot_names(results):
+        if not (plots / name).is_file():
+            out.append(f"docs/figures/{name} is missing (python bench/figures.py --write)")
+    for r in results:
+        if not known_commit(r["commit"]):
+            out.append(f"{r['name']}: commit {r['commit']} is not in this repository's history")
     return out
+
+
+def notices(results: list[dict]) -> list[str]:
+    """The results measured on older code than HEAD (no failure)."""
+    return [f"{name}: {STALE_WORDS} {next(r['commit'] for r in results if r['name'] == name)} "
+            f"({len(files)} file(s) it measures, e.g. {files[0]}): run its command again and record it"
+            for name, files in staleness(results).items()]  # fmt: skip
+
+
+def write_pages(results: list[dict]) -> None:
+    stale = staleness(results)
+    text = README.read_text()
+    before, rest = text.split(BEGIN, 1)
+    README.write_text(f"{before}{BEGIN}\n{render_key(results, stale)}\n{END}{rest.split(END, 1)[1]}")
+    RESULTS_PAGE.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS_PAGE.write_text(render_results(results, stale))
+    plots = write_plots(results)
+    print(f"README.md, {RESULTS_PAGE.relative_to(REPO)}: {len(results)} result(s), {len(stale)} older than the code; "
+          f"{len(plots)} plot(s) in {PLOTS.relative_to(REPO)}")  # fmt: skip
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     g = ap.add_mutually_exclusive_group(required=True)
-    g.add_argument("--write-readme", action="store_true", help="render the result files into README.md")
-    g.add_argument("--check", action="store_true", help="fail when README.md and the result files disagree")
+    g.add_argument("--write", "--write-readme", "--write-results", dest="write", action="store_true",
+                   help="render the result files into docs/RESULTS.md, docs/figures/ and README.md")
+    g.add_argument("--check", action="store_true",
+                   help="fail when the pages and the result files disagree; list figures older than the code")
     a = ap.parse_args()
     results = load_results()
-    text = README.read_text()
-    if a.write_readme:
-        before, rest = text.split(BEGIN, 1)
-        README.write_text(f"{before}{BEGIN}\n{render(results)}\n{END}{rest.split(END, 1)[1]}")
-        print(f"README.md: {len(results)} figure row(s) written")
+    if a.write:
+        write_pages(results)
         return 0
-    found = problems(results, text)
+    for n in notices(results):
+        print(f"notice: {n}")
+    found = problems(results, README.read_text(), RESULTS_PAGE.read_text() if RESULTS_PAGE.exists() else "")
     for p in found:
         print(p, file=sys.stderr)
     return 1 if found else 0

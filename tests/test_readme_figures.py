@@ -1,10 +1,11 @@
-"""The README's "Where it stands" figures against the bench result files committed beside
-them (bench/figures.py): the quoted block must be what the files give, and no figure may be
-older than the code it measures."""
+"""The recorded figures against the pages that show them (bench/figures.py): docs/RESULTS.md
+and the README's key lines must be what bench/results/*.json give, every commit named must
+be in the history, and a figure older than the code it measures is marked, not a failure."""
 
 import importlib.util
 import json
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -23,36 +24,126 @@ def _git(*args: str) -> str:
     return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
 
 
-def test_readme_quotes_the_committed_bench_results():
+def test_the_pages_show_the_committed_bench_results():
     fig = _figures()
     results = fig.load_results()
     assert results, "bench/results holds no result file"
-    assert fig.problems(results, (REPO / "README.md").read_text()) == []
+    page = (REPO / "docs" / "RESULTS.md").read_text()
+    assert fig.problems(results, (REPO / "README.md").read_text(), page) == []
+    # Every result file has its section on the page, with its command and commit.
+    for r in results:
+        assert f"\n## {r['name']}\n" in page and r["command"] in page and r["commit"] in page
 
 
-def _result(commit: str, measures: list[str], value: str = "38.65 cm") -> dict:
-    return {"name": "kitti", "title": "KITTI 00", "figures": [["keyframe ATE", value]], "command": "python bench/x.py",
-            "commit": commit, "measures": measures, "load_start": 0.1, "load_end": 0.2, "notes": ""}
+def _result(commit: str, measures: list[str], value: str = "38.65 cm", name: str = "kitti") -> dict:
+    return {"name": name, "title": "KITTI 00", "figures": [["keyframe ATE", value]], "command": "python bench/x.py",
+            "commit": commit, "measures": measures, "date": "2026-01-01", "machine": "m, 2 CPUs",
+            "load_start": 0.1, "load_end": 0.2, "notes": ""}
 
 
-def test_the_check_fails_on_a_changed_figure_a_stale_commit_and_an_unknown_commit():
-    fig = _figures()
+def _pages(fig, results, stale):
+    readme = f"intro\n{fig.BEGIN}\n{fig.render_key(results, stale)}\n{fig.END}\nrest\n"
+    return readme, fig.render_results(results, stale)
+
+
+@pytest.fixture()
+def commits():
     head = _git("rev-parse", "--short=7", "HEAD")
     first = _git("rev-list", "--max-parents=0", "HEAD").splitlines()[-1][:7]
+    return head, first
+
+
+def test_a_changed_figure_or_an_unknown_commit_fails_the_check(tmp_path, commits):
+    fig = _figures()
+    head, _ = commits
     good = _result(head, ["bench/figures.py"])
-    readme = f"intro\n{fig.BEGIN}\n{fig.render([good])}\n{fig.END}\nrest\n"
-    assert fig.problems([good], readme) == []
-    # A figure edited in the README but not in the result file.
-    assert any("differs" in p for p in fig.problems([good], readme.replace("38.65", "30.65")))
-    # Measured at the first commit: the package has changed since.
-    stale = _result(first, ["orbslam_hgcn"])
-    found = fig.problems([stale], f"{fig.BEGIN}\n{fig.render([stale])}\n{fig.END}")
-    assert len(found) == 1 and "changed since" in found[0]
+    (tmp_path / "keyframe_ate.png").write_bytes(b"png")
+    readme, page = _pages(fig, [good], {})
+    assert fig.problems([good], readme, page, tmp_path) == []
+    # A figure edited on the page but not in the result file.
+    assert any("RESULTS.md differs" in p for p in fig.problems([good], readme, page.replace("38.65", "30.65"), tmp_path))
+    # A result file the page does not show yet.
+    other = _result(head, ["bench/figures.py"], "12.00 cm", name="other")
+    assert any("RESULTS.md differs" in p for p in fig.problems([good, other], readme, page, tmp_path))
+    # A plot the page shows that is not there.
+    assert any("keyframe_ate.png is missing" in p for p in fig.problems([good], readme, page, tmp_path / "none"))
     missing = _result("0000000", ["orbslam_hgcn"])
-    found = fig.problems([missing], f"{fig.BEGIN}\n{fig.render([missing])}\n{fig.END}")
+    readme, page = _pages(fig, [missing], {})
+    found = fig.problems([missing], readme, page, tmp_path)
     assert len(found) == 1 and "not in this repository's history" in found[0]
     with pytest.raises(ValueError):
         fig.readme_block("no markers here")
+
+
+def test_the_readme_key_lines_are_checked_too(tmp_path, commits):
+    fig = _figures()
+    head, _ = commits
+    r = _result(head, ["bench/figures.py"], "words 4.3 ms CPU (0.94x orb), keyframe ATE 43.86 cm", name="words_in_system")
+    r["figures"] = [["kmeans", r["figures"][0][1]]]
+    (tmp_path / "keyframe_ate.png").write_bytes(b"png")
+    readme, page = _pages(fig, [r], {})
+    assert "words 4.3 ms CPU (0.94x orb)" in readme
+    assert fig.problems([r], readme, page, tmp_path) == []
+    found = fig.problems([r], readme.replace("4.3 ms", "3.3 ms"), page, tmp_path)
+    assert len(found) == 1 and "README" in found[0]
+
+
+def test_a_figure_older_than_its_code_is_marked_and_is_no_failure(tmp_path, commits):
+    fig = _figures()
+    head, first = commits
+    # Measured at the first commit: the package has changed since.
+    stale = _result(first, ["orbslam_hgcn"], name="words_in_system")
+    stale["figures"] = [["kmeans", "keyframe ATE 38.65 cm"]]
+    found = fig.staleness([stale])
+    assert list(found) == ["words_in_system"] and found["words_in_system"]
+    (tmp_path / "keyframe_ate.png").write_bytes(b"png")
+    marked_readme, marked_page = _pages(fig, [stale], found)
+    plain_readme, plain_page = _pages(fig, [stale], {})
+    mark = f"**code changed since {first}**"
+    assert mark in marked_page and mark in marked_readme
+    assert mark not in plain_page and mark not in plain_readme
+    # The page written before the code changed (no mark) and the one written after both pass.
+    assert fig.problems([stale], marked_readme, marked_page, tmp_path) == []
+    assert fig.problems([stale], plain_readme, plain_page, tmp_path) == []
+    assert fig.normalise(marked_page) == plain_page and fig.normalise(marked_readme) == plain_readme
+    notes = fig.notices([stale])
+    assert len(notes) == 1 and f"code changed since {first}" in notes[0]
+    # The mark does not hide an edited figure.
+    assert fig.problems([stale], marked_readme, marked_page.replace("38.65", "30.65"), tmp_path)
+    # Measured at HEAD on files that have not changed since: current, no notice.
+    assert fig.staleness([_result(head, ["bench/figures.py"])]) == {}
+
+
+def test_check_exits_0_with_notices_and_1_on_a_difference(tmp_path):
+    out = subprocess.run([sys.executable, str(REPO / "bench" / "figures.py"), "--check"], cwd=REPO, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert all(line.startswith("notice: ") for line in out.stdout.splitlines())
+
+
+def test_tables_and_contrasts_are_parsed_into_rows():
+    fig = _figures()
+    assert fig._parts("3 runs: tracked 160-160 of 160 frames, keyframe ATE 43.86 cm, 28.6 frames/s (1.3x orb)") == [
+        ("runs", "3"), ("tracked", "160-160 of 160 frames"), ("keyframe ATE", "43.86 cm"),
+        ("frames/s", "28.6 frames/s (1.3x orb)")]
+    assert fig.contrasts("B0-A0 +0.022 [+0.002, +0.043] 13/7 Holm p 1; orb-A0 -0.176 [-0.205, -0.145] 1/19 Holm p 0.0001") == [
+        ("B0-A0", "+0.022", "+0.002", "+0.043", "13/7", "1"), ("orb-A0", "-0.176", "-0.205", "-0.145", "1/19", "0.0001")]
+    assert fig.contrasts("A0 0.776, A1 0.775") is None
+    r = _result("abc1234", ["orbslam_hgcn"], "B0-A0 +0.022 [+0.002, +0.043] 13/7 Holm p 1", name="tw")
+    r["figures"] = [["8000 words, AP", "A0 0.776, B0 0.798"], ["8000 words, AP contrasts", r["figures"][0][1]]]
+    page = fig.render_results([r], {})
+    assert "| A0 | 0.776 |" in page and "| 8000 words, AP contrasts | B0-A0 | +0.022 | [+0.002, +0.043] | 13/7 | 1 |" in page
+    assert "figures/tw_contrasts.png" in page
+
+
+def test_plots_are_written(tmp_path):
+    pytest.importorskip("matplotlib")
+    fig = _figures()
+    r = _result("abc1234", ["orbslam_hgcn"], "keyframe ATE 43.86 cm", name="a")
+    c = _result("abc1234", ["orbslam_hgcn"], "B0-A0 +0.022 [+0.002, +0.043] 13/7 Holm p 1", name="b")
+    written = fig.write_plots([r, c], tmp_path)
+    assert sorted(p.name for p in written) == ["b_contrasts.png", "keyframe_ate.png"]
+    assert all(p.read_bytes()[:4] == b"\x89PNG" and p.stat().st_size < 100_000 for p in written)
 
 
 def test_record_prints_the_results_path_inside_or_outside_the_repository(tmp_path, monkeypatch, capsys):
