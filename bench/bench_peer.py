@@ -4,23 +4,57 @@ Each run starts both systems in turn, each in a subprocess of its own, on the sa
 
 - ours as a user runs it: ``orbslam-hgcn run PATH --out DIR`` (plus ``--ours-args``), read
   back from its ``stats.json`` and ``KeyFrameTrajectory.txt``;
-- ORB-SLAM3 through the optional extra ``peer`` (the ``pyorbslam3`` bindings), with the
-  project's shipped ORB tree exported as a DBoW2 text vocabulary and a settings file in
-  ORB-SLAM3 v1.0's format written from the dataset's camera. The images are decoded here,
-  by OpenCV as ORB-SLAM3's example programs decode them (``cv2.imread``, grey; not by
-  orbslam_hgcn's faster PNG decoder, which is ours, not ORB-SLAM3's), and piped to the
-  ORB-SLAM3 process, which hands frame i to ORB-SLAM3 no earlier than its timestamp says
-  the camera delivered it (as ORB-SLAM3's example programs pace their input; like
-  ``orbslam-hgcn run``, a gap of more than 1 s in the timestamps is waited 1 s). It
-  records every frame's tracking state and, after ``Shutdown``, the keyframe trajectory. A
-  crash or an ``exit`` inside ORB-SLAM3 ends that process only; the bench reports it and
-  goes on.
+- ORB-SLAM3 through the optional extra ``peer`` (the ``pyorbslam3`` bindings), with a DBoW2
+  text vocabulary (below) and a settings file in ORB-SLAM3 v1.0's format written from the
+  dataset's camera. The images are decoded here, by OpenCV as ORB-SLAM3's example programs
+  decode them (``cv2.imread``, grey; not by orbslam_hgcn's faster PNG decoder, which is
+  ours, not ORB-SLAM3's), and piped to the ORB-SLAM3 process, which hands frame i to
+  ORB-SLAM3 no earlier than its timestamp says the camera delivered it (as ORB-SLAM3's
+  example programs pace their input; like ``orbslam-hgcn run``, a gap of more than 1 s in
+  the timestamps is waited 1 s). It records every frame's tracking state and, after
+  ``Shutdown``, the keyframe trajectory. A crash or an ``exit`` inside ORB-SLAM3 ends that
+  process only; the bench reports it and goes on.
+
+ORB-SLAM3's vocabulary. By default ``../shared/peer/ORBvoc_real_k10L6.txt.gz`` beside the
+repository (a 6-level DBoW2 tree trained on real photographs, no KITTI frame among them;
+see the README there), gunzipped once into ``~/.cache/orbslam_hgcn/peer/`` since ORB-SLAM3
+reads text. When that file is missing the bench says so and exits with status 2.
+``--peer-vocab FILE`` takes any DBoW2 text vocabulary (``.txt`` or ``.txt.gz``) or an
+orbslam_hgcn ORB-tree vocabulary (a ``.npz`` file or a shipped name such as ``orb``),
+exported to DBoW2 text with ``orbslam-hgcn vocab export`` into the same cache. The
+project's shipped ORB tree lets ORB-SLAM3 track only about 28 of the 160 KITTI 00 frames:
+a comparison against a peer that loses its frames compares nothing.
+
+A comparison counts only when both systems track at least 95% of the frames given
+(``VALID_SHARE``): ours, frames with a pose in the final map; ORB-SLAM3, frames in state
+OK. A run where either falls short prints which system failed, how many frames it tracked,
+and that the comparison of that run is void; it gives no throughput ratio, and the median
+ratio is taken over the valid runs only.
+
+Timing, the same for both systems, all on the machine's monotonic clock:
+
+- **frames/s**: frames given / the span from the first image handed in to the last pose
+  out. Ours: from the start of the first frame's extraction (the image read and decoded,
+  as ORB-SLAM3's first image has been decoded by the bench) to the last frame's pose,
+  computed from ``stats.json`` ``real_time`` (``frames_wall_s`` starts at that
+  extraction; ``real_time_factor`` is camera seconds per wall second over the same span,
+  so the span is the camera time from the first to the last frame / that factor).
+  ORB-SLAM3: from its first ``TrackMonocular`` call to the return of its last.
+- **start s** (not in frames/s): from the bench starting the system's process to the
+  first image handed in: interpreter, imports, configuration, vocabulary loading and, for
+  ours, its extraction and local BA processes (ours: the bench notes when ``orbslam-hgcn
+  run`` logs "N frames, camera ...", just before ``System.run``, and adds
+  ``real_time.startup_s``, from there to the first extraction; ORB-SLAM3: its child
+  notes the clock at its first ``TrackMonocular``).
+- **shut s** (not in frames/s): from the last pose out to the system stopped. Ours, its
+  stages drained at the end of ``System.run`` (``frames_wall_s`` minus the span above);
+  ORB-SLAM3, ``Shutdown()`` returned. Writing trajectories afterwards counts in neither.
 
 ORB-SLAM3 groups features for BoW matching (tracking against the reference keyframe,
 triangulation in local mapping, relocalisation) at the vocabulary's depth minus 4: level 2
-(100 nodes) of its own 6-level ORBvoc.txt, but level 1 (10 nodes) of the shipped 5-level
-tree, where each search compares many more descriptor pairs. ``--peer-bow-level 2`` hands
-it a copy of the vocabulary whose header makes that level 2.
+(100 nodes) of a 6-level tree such as the default one, but level 1 (10 nodes) of
+orbslam_hgcn's 5-level ORB trees, where each search compares many more descriptor pairs.
+``--peer-bow-level 2`` hands it a copy of the vocabulary whose header makes that level 2.
 
 Both keyframe trajectories are scored the same way: ATE after Sim(3) alignment against the
 dataset's ground truth, through :func:`orbslam_hgcn.app.run.trajectory_ate`.
@@ -28,15 +62,24 @@ dataset's ground truth, through :func:`orbslam_hgcn.app.run.trajectory_ate`.
 Printed per run and system: frames given, frames tracked, frames lost, maps started,
 keyframes, keyframe ATE, frames/s, the median time from an image to its pose (ours from the
 start of its extraction, which an unpaced run starts up to ``threads.prefetch_frames`` frames
-ahead of the tracker; ORB-SLAM3's ``TrackMonocular`` call), wall time (first
-frame to shutdown, the same span for both), start-up time (not in the wall time: ours starts
-its extraction and local BA processes, ORB-SLAM3 loads its vocabulary) and CPU time; then the
-median over the runs. The ORB-SLAM3 process needs ``pyorbslam3`` and the
-OpenGL/X11 runtime libraries its wheel links against; when they are missing the bench says
-what to install and exits with status 2.
+ahead of the tracker; ORB-SLAM3's ``TrackMonocular`` call), the span frames/s counts,
+start-up, shutdown and CPU time (the process tree, start-up included); then each run's
+verdict (ratio, or void), the medians over the runs and the median ratio over the valid
+runs. ``--record NAME`` writes these figures through ``bench/figures.py``.
+
+``--gate`` checks a vocabulary: it runs ORB-SLAM3 alone (``--runs`` times) with
+``--peer-vocab`` (default: the shared file above) and prints the frames tracked of those
+given, run by run. Exit status 0 when the median run tracks at least 98% of them
+(``GATE_SHARE``), else 1. The check a vocabulary for ORB-SLAM3 must pass: it lets ORB-SLAM3
+track at least 98% of KITTI 00 frames 0-159.
+
+The ORB-SLAM3 process needs ``pyorbslam3`` and the OpenGL/X11 runtime libraries its wheel
+links against; when they are missing the bench says what to install and exits with status 2.
 
     python bench/bench_peer.py --sequence ../shared/data/kitti00_first160/sequences/00 \\
-        --dataset kitti --runs 3
+        --dataset kitti --speed 0 --runs 3
+    python bench/bench_peer.py --sequence ../shared/data/kitti00_first160/sequences/00 \\
+        --dataset kitti --gate --runs 3 --peer-vocab my_vocab.npz
 """
 
 from __future__ import annotations
@@ -86,6 +129,11 @@ PEER_FEATURES = {"kitti": 2000, "tum": 1000, "euroc": 1000}
 MAX_WAIT_S = 1.0  # a longer wait is a gap in the timestamps: wait this long, restart the clock
 FRAME_HEADER = struct.Struct("<dIII")  # timestamp (s), height, width, channels; height 0 ends
 LOST_STATES = ("RECENTLY_LOST", "LOST")
+VALID_SHARE = 0.95  # a comparison counts only when both systems track this share of the frames given
+GATE_SHARE = 0.98  # --gate: a vocabulary passes when ORB-SLAM3's median run tracks this share
+REPO = Path(__file__).resolve().parent.parent
+DEFAULT_PEER_VOCAB = REPO.parent / "shared" / "peer" / "ORBvoc_real_k10L6.txt.gz"
+CACHE = Path.home() / ".cache" / "orbslam_hgcn" / "peer"
 
 
 # --- the ORB-SLAM3 side: runs in the interpreter given by --peer-python ------------------
@@ -156,7 +204,7 @@ def peer_child(vocab: str, settings: str, out: str, speed: float) -> int:
     load_s = time.perf_counter() - t0
     stdin = sys.stdin.buffer
     anchor: tuple[float, float] | None = None  # (perf_counter, timestamp) of the clock's start
-    first = last = None
+    first = last = first_mono = None
     n = 0
     with (out_dir / "frames.tsv").open("w") as tsv:
         tsv.write("index\ttimestamp\tstate\tpoints\ttrack_ms\tlate_ms\n")
@@ -184,7 +232,7 @@ def peer_child(vocab: str, settings: str, out: str, speed: float) -> int:
             ta = time.perf_counter()
             due = anchor[0] + (ts - anchor[1]) / speed if speed > 0 else ta
             if first is None:
-                first = ta
+                first, first_mono = ta, time.monotonic()  # the bench's clock: start-up from its spawn
             result = slam.track_monocular(image, ts)
             last = time.perf_counter()
             tsv.write(f"{n}\t{ts:.9f}\t{result.state.name}\t{result.num_tracked_points}\t"
@@ -196,8 +244,8 @@ def peer_child(vocab: str, settings: str, out: str, speed: float) -> int:
     shutdown_s = time.perf_counter() - ts0
     slam.save_keyframe_trajectory_tum(str(out_dir / "KeyFrameTrajectory.txt"))
     summary = {
-        "frames": n, "load_s": load_s, "shutdown_s": shutdown_s,
-        "loop_s": (last - first) if n else 0.0,
+        "frames": n, "load_s": load_s, "shutdown_s": shutdown_s, "first_in_monotonic": first_mono,
+        "loop_s": (last - first) if n else 0.0,  # first image handed in to the last pose out
         "wall_s": (ts0 + shutdown_s - first) if n else 0.0,
     }
     (out_dir / "result.json").write_text(json.dumps(summary, indent=1))
@@ -251,23 +299,103 @@ def check_peer(peer_python: str) -> str:
     return ""
 
 
-def export_vocabulary(target: Path) -> Path:
-    """The shipped ORB tree as a DBoW2 text file at ``target`` (exported again when the
-    shipped tree is newer)."""
-    import orbslam_hgcn
+class VocabularyNotFound(Exception):
+    """ORB-SLAM3's vocabulary cannot be had: the message says why and what to give."""
 
-    shipped = Path(orbslam_hgcn.__file__).parent / "data" / "vocab_orb_default.npz"
-    if target.is_file() and (not shipped.is_file() or target.stat().st_mtime >= shipped.stat().st_mtime):
+
+def _fresh(target: Path, source: Path) -> bool:
+    """Whether ``target`` exists and is not older than ``source``."""
+    return target.is_file() and target.stat().st_mtime >= source.stat().st_mtime
+
+
+def gunzip_cached(source: Path, cache: Path) -> Path:
+    """The text of the gzip file ``source`` in ``cache`` (written again when ``source`` is
+    newer), for ORB-SLAM3 reads its vocabulary as plain text."""
+    import gzip
+
+    name = source.name[: -len(".gz")] if source.name.endswith(".gz") else source.name + ".txt"
+    target = cache / name
+    if _fresh(target, source):
         return target
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_suffix(".part.txt")
-    proc = subprocess.run(ours_command() + ["vocab", "export", "orb", "--format", "dbow2", "--out", str(tmp)],
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f"{target.name}.{os.getpid()}.part")
+    try:
+        with gzip.open(source, "rb") as src, tmp.open("wb") as dst:
+            shutil.copyfileobj(src, dst, 1 << 20)
+        os.replace(tmp, target)
+    except (OSError, EOFError) as exc:
+        tmp.unlink(missing_ok=True)
+        raise VocabularyNotFound(f"{source}: cannot gunzip it ({exc})") from exc
+    return target
+
+
+def export_vocabulary(source: str, cache: Path) -> Path:
+    """The orbslam_hgcn ORB-tree vocabulary ``source`` (a .npz file or a shipped name such as
+    ``orb``) as a DBoW2 text file in ``cache``, through ``orbslam-hgcn vocab export``
+    (exported again when the source file is newer)."""
+    from orbslam_hgcn.vocabulary.loading import SHIPPED
+
+    path = Path(source)
+    if not path.is_file():
+        if source not in SHIPPED:
+            raise VocabularyNotFound(f"--peer-vocab {source}: no such file, nor a shipped vocabulary "
+                                     f"({', '.join(sorted(SHIPPED))})")
+        path = Path(SHIPPED[source])
+    target = cache / f"ORBvoc_{path.stem}.txt"
+    if _fresh(target, path):
+        return target
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f"{target.stem}.{os.getpid()}.part.txt")
+    proc = subprocess.run(ours_command() + ["vocab", "export", str(path), "--format", "dbow2", "--out", str(tmp)],
                           capture_output=True, text=True)
     if proc.returncode != 0:
+        tmp.unlink(missing_ok=True)
         err = [ln for ln in (proc.stdout + proc.stderr).splitlines() if ln.strip()]
-        fail(f"exporting the ORB vocabulary failed: {err[-1] if err else proc.returncode}")
+        raise VocabularyNotFound(f"exporting {source} to DBoW2 text failed: {err[-1] if err else proc.returncode}")
     os.replace(tmp, target)
     return target
+
+
+def resolve_peer_vocab(spec: str | None, cache: Path = CACHE, default: Path = DEFAULT_PEER_VOCAB,
+                       export: Any = None) -> tuple[Path, bool]:
+    """The DBoW2 text file ORB-SLAM3 is to load for ``--peer-vocab spec``, and whether it was
+    exported from an orbslam_hgcn vocabulary (so that figures measured with it depend on the
+    package). ``None``: ``default``. A ``.gz`` file is gunzipped into ``cache``; a ``.txt``
+    file, or one whose first line is DBoW2's header (four integers), is used as it is; a
+    ``.npz`` file or a shipped name is exported into ``cache`` by ``export`` (default
+    :func:`export_vocabulary`). Raises :class:`VocabularyNotFound`."""
+    if spec is None:
+        if not default.is_file():
+            raise VocabularyNotFound(
+                f"ORB-SLAM3's default vocabulary {default} is missing; give a DBoW2 text vocabulary "
+                "(.txt or .txt.gz) or an orbslam_hgcn one (.npz, or a shipped name such as 'orb') "
+                "with --peer-vocab FILE")
+        path = default
+    else:
+        path = Path(spec).expanduser()
+    if not path.exists() and (path.suffix.lower() in (".txt", ".gz", ".npz") or os.sep in str(spec)):
+        raise VocabularyNotFound(f"--peer-vocab {spec}: file not found")
+    if path.suffix.lower() == ".npz" or not path.exists():  # an orbslam_hgcn file, or a shipped name
+        return (export or export_vocabulary)(str(spec), cache), True
+    if not path.is_file():
+        raise VocabularyNotFound(f"--peer-vocab {spec}: not a file")
+    path = path.resolve()
+    if path.suffix.lower() == ".gz":
+        return gunzip_cached(path, cache), False
+    if path.suffix.lower() == ".txt" or dbow2_header(path):
+        return path, False
+    raise VocabularyNotFound(f"--peer-vocab {spec}: neither a DBoW2 text vocabulary (.txt, .txt.gz: a first line "
+                             "'k L scoring weighting') nor an orbslam_hgcn one (.npz)")
+
+
+def dbow2_header(path: Path) -> bool:
+    """Whether the first line of ``path`` is DBoW2's text header: four integers."""
+    try:
+        with path.open("rb") as fh:
+            head = fh.readline(256).split()
+    except OSError:
+        return False
+    return len(head) == 4 and all(h.lstrip(b"-").isdigit() for h in head)
 
 
 def vocabulary_with_bow_level(vocab: Path, level: int, out: Path) -> Path:
@@ -371,7 +499,10 @@ def tail(path: Path, n: int = 1) -> str:
     return " | ".join(lines[-n:])
 
 
-def run_ours(args: argparse.Namespace, kind: str, out: Path, gt: Any) -> dict[str, Any]:
+RUN_READY = re.compile(r": \d+ frames, camera ")  # orbslam-hgcn run's log line just before System.run
+
+
+def run_ours(args: argparse.Namespace, kind: str, out: Path, gt: Any, camera_span_s: float) -> dict[str, Any]:
     cmd = ours_command() + ["run", str(args.sequence), "--out", str(out), "--dataset", kind, "--no-progress"]
     if args.max_frames is not None:
         cmd += ["--max-frames", str(args.max_frames)]
@@ -382,12 +513,21 @@ def run_ours(args: argparse.Namespace, kind: str, out: Path, gt: Any) -> dict[st
     cmd += shlex.split(args.ours_args)
     out.mkdir(parents=True, exist_ok=True)
     log = out / "run.log"
-    c0, t0 = children_cpu(), time.perf_counter()
+    ready_at = None  # when the run logged "N frames, camera ...", just before System.run
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    c0, t0 = children_cpu(), time.monotonic()
     with log.open("w") as fh:
         fh.write(" ".join(shlex.quote(c) for c in cmd) + "\n")
         fh.flush()
-        rc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT).returncode
-    row: dict[str, Any] = {"system": "orbslam-hgcn", "cpu_s": children_cpu() - c0, "call_s": time.perf_counter() - t0}
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True,
+                                errors="replace", bufsize=1)
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if ready_at is None and RUN_READY.search(line):
+                ready_at = time.monotonic()
+            fh.write(line)
+        rc = proc.wait()
+    row: dict[str, Any] = {"system": "orbslam-hgcn", "cpu_s": children_cpu() - c0, "call_s": time.monotonic() - t0}
     stats_path = out / "stats.json"
     if rc != 0 or not stats_path.is_file():
         row["error"] = f"exit status {rc}: {tail(log)} (log: {log})"
@@ -395,20 +535,40 @@ def run_ours(args: argparse.Namespace, kind: str, out: Path, gt: Any) -> dict[st
     s = json.loads(stats_path.read_text())
     f = s["frames"]
     rt = s.get("real_time", {})
-    # From the first frame's extraction to the stages drained, as ORB-SLAM3's wall time runs
-    # from its first frame to Shutdown(); the start of the child processes is start_s, as
-    # ORB-SLAM3's vocabulary loading is its start_s.
-    frames_wall = rt.get("frames_wall_s")
+    # frames_wall_s runs from the first frame's extraction to the stages drained; the real-time
+    # factor is camera seconds per wall second from that extraction to the last pose out.
+    loop_s, shutdown_s = ours_spans(rt.get("frames_wall_s"), rt.get("real_time_factor"), camera_span_s)
+    startup = rt.get("startup_s")
     row.update(
         frames=f["frames"], tracked=f["tracked"], lost=f["lost"],
         maps=sum(1 for e in s.get("events", []) if e.get("event") == "initialized"),
-        keyframes=s["keyframes"], wall_s=float(frames_wall if frames_wall is not None else s["wall_s"]),
-        start_s=float(rt["startup_s"]) if rt.get("startup_s") is not None else float("nan"),
+        keyframes=s["keyframes"], loop_s=loop_s, shutdown_s=shutdown_s,
+        start_s=(ready_at - t0 + float(startup)) if ready_at is not None and startup is not None else float("nan"),
         frame_ms=float(s["timing_ms"]["frame_total"]["median"]),
         ate=keyframe_ate(gt, out / "KeyFrameTrajectory.txt"),
     )
-    row["fps"] = row["frames"] / row["wall_s"] if row["wall_s"] > 0 else 0.0
+    row["fps"] = fps(row["frames"], row["loop_s"])
     return row
+
+
+def ours_spans(frames_wall_s: float | None, real_time_factor: float | None,
+               camera_span_s: float) -> tuple[float, float]:
+    """Ours: (first image handed in to the last pose out, last pose out to stages drained),
+    in seconds, from stats.json's ``real_time``. The first span is the camera time from the
+    first frame to the last (``camera_span_s``) / the real-time factor; the second, the rest
+    of ``frames_wall_s``. Without a factor (a single frame) the first is all of
+    ``frames_wall_s`` and the second NaN."""
+    if frames_wall_s is None:
+        return float("nan"), float("nan")
+    if not real_time_factor or camera_span_s <= 0:
+        return float(frames_wall_s), float("nan")
+    loop_s = camera_span_s / float(real_time_factor)
+    return loop_s, float(frames_wall_s) - loop_s
+
+
+def fps(frames: float, span_s: float) -> float:
+    """Frames per second over ``span_s`` (0 when the span is not positive or not known)."""
+    return frames / span_s if span_s > 0 else 0.0
 
 
 def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, settings: Path, out: Path,
@@ -422,7 +582,7 @@ def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, setti
            "--settings", str(settings), "--out", str(out), "--speed", str(args.speed)]
     duration = float(sequence.timestamps[n - 1] - sequence.timestamps[0]) if n else 0.0
     limit = 300.0 + 5.0 * (duration / args.speed if args.speed > 0 else 0.0) + 2.0 * n
-    c0, t0 = children_cpu(), time.perf_counter()
+    c0, t0 = children_cpu(), time.monotonic()
     with log.open("w") as fh:
         proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=fh, stderr=subprocess.STDOUT)
         assert proc.stdin is not None
@@ -461,7 +621,7 @@ def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, setti
             proc.wait()
             watchdog.cancel()
     note = f"killed after {limit:.0f} s" if killed.is_set() else ""
-    row: dict[str, Any] = {"system": "ORB-SLAM3", "cpu_s": children_cpu() - c0, "call_s": time.perf_counter() - t0}
+    row: dict[str, Any] = {"system": "ORB-SLAM3", "cpu_s": children_cpu() - c0, "call_s": time.monotonic() - t0}
     rc = proc.returncode
     states, track_ms = [], []
     tsv = out / "frames.tsv"
@@ -482,16 +642,19 @@ def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, setti
     keyframes = sum(1 for ln in kf_path.read_text().splitlines() if ln.strip()) if kf_path.is_file() else 0
     row.update(
         frames=len(states), tracked=states.count("OK"), lost=sum(s in LOST_STATES for s in states), maps=inits,
-        keyframes=keyframes, wall_s=float(res["wall_s"]), frame_ms=statistics.median(track_ms) if track_ms else 0.0,
-        start_s=float(res["load_s"]), ate=keyframe_ate(gt, kf_path),
+        keyframes=keyframes, loop_s=float(res["loop_s"]), shutdown_s=float(res["wall_s"]) - float(res["loop_s"]),
+        frame_ms=statistics.median(track_ms) if track_ms else 0.0, load_s=float(res["load_s"]),
+        start_s=(float(res["first_in_monotonic"]) - t0) if res.get("first_in_monotonic") is not None else float("nan"),
+        ate=keyframe_ate(gt, kf_path),
     )
-    row["fps"] = row["frames"] / row["wall_s"] if row["wall_s"] > 0 else 0.0
+    row["fps"] = fps(row["frames"], row["loop_s"])
     return row
 
 
 COLUMNS = (
     ("run", 4), ("system", 13), ("frames", 6), ("tracked", 7), ("lost", 5), ("maps", 4), ("KFs", 4),
-    ("KF ATE cm", 10), ("pairs", 5), ("frames/s", 8), ("ms/frame", 8), ("wall s", 7), ("start s", 7), ("CPU s", 6),
+    ("KF ATE cm", 10), ("pairs", 5), ("frames/s", 8), ("ms/frame", 8), ("span s", 7), ("start s", 7),
+    ("shut s", 6), ("CPU s", 6),
 )
 
 
@@ -503,21 +666,74 @@ def format_row(run: str, row: dict[str, Any]) -> str:
     pairs = str(ate.get("pairs", "-"))
     vals = (run, row["system"], f"{row['frames']:.0f}", f"{row['tracked']:.0f}", f"{row['lost']:.0f}",
             f"{row['maps']:.0f}", f"{row['keyframes']:.0f}", ate_s, pairs, f"{row['fps']:.2f}",
-            f"{row['frame_ms']:.1f}", f"{row['wall_s']:.1f}", f"{row['start_s']:.1f}", f"{row['cpu_s']:.1f}")
+            f"{row['frame_ms']:.1f}", f"{row['loop_s']:.2f}", f"{row['start_s']:.1f}", f"{row['shutdown_s']:.2f}",
+            f"{row['cpu_s']:.1f}")
     return " ".join(f"{v:<{w}s}" if name == "system" else f"{v:>{w}s}" for (name, w), v in zip(COLUMNS, vals))
 
 
 def median_row(rows: list[dict[str, Any]], system: str) -> dict[str, Any] | None:
+    """The median of every figure over the runs that completed (None when none did)."""
     ok = [r for r in rows if "error" not in r]
     if not ok:
         return None
     med: dict[str, Any] = {"system": system}
-    for key in ("frames", "tracked", "lost", "maps", "keyframes", "fps", "frame_ms", "wall_s", "start_s", "cpu_s"):
+    for key in ("frames", "tracked", "lost", "maps", "keyframes", "fps", "frame_ms", "loop_s", "start_s",
+                "shutdown_s", "cpu_s"):
         med[key] = statistics.median(r[key] for r in ok)
     ates = [r["ate"] for r in ok if "rmse_m" in r["ate"]]
     med["ate"] = ({"rmse_m": statistics.median(a["rmse_m"] for a in ates), "pairs": f"{len(ates)}/{len(rows)}"}
                   if ates else {"error": "none"})
     return med
+
+
+# --- verdicts: pure functions of the rows -------------------------------------------------
+
+
+def tracked_of(row: dict[str, Any]) -> int:
+    """Frames a run tracked; 0 for a run that failed."""
+    return 0 if "error" in row else int(row["tracked"])
+
+
+def compare_run(ours: dict[str, Any], peer: dict[str, Any], given: int,
+                share: float = VALID_SHARE) -> dict[str, Any]:
+    """One run's verdict: ``valid`` when both systems tracked at least ``share`` of the
+    ``given`` frames (and neither failed), with ``ratio`` = ours' frames/s / ORB-SLAM3's;
+    else ``valid`` False, no ratio, and ``failed``: (system, frames tracked, why) for each
+    system that fell short."""
+    failed = []
+    for row in (ours, peer):
+        if "error" in row:
+            failed.append((row["system"], 0, "the run failed"))
+        elif given <= 0 or row["tracked"] < share * given:
+            failed.append((row["system"], int(row["tracked"]), f"under {share:.0%} of {given}"))
+        elif not row["fps"] > 0:
+            failed.append((row["system"], int(row["tracked"]), "no frames/s"))
+    if failed:
+        return {"valid": False, "failed": failed}
+    return {"valid": True, "ratio": ours["fps"] / peer["fps"]}
+
+
+def describe_verdict(verdict: dict[str, Any], given: int) -> str:
+    if verdict["valid"]:
+        return f"ratio {verdict['ratio']:.2f}x (ours' frames/s / ORB-SLAM3's)"
+    why = "; ".join(f"{system} tracked {tracked} of {given} frames ({reason})" for system, tracked, reason in verdict["failed"])
+    return f"comparison void: {why}; no ratio"
+
+
+def median_ratio(verdicts: list[dict[str, Any]]) -> tuple[float, list[float]] | None:
+    """The median ratio over the valid runs and those runs' ratios (None when no run is valid)."""
+    ratios = [v["ratio"] for v in verdicts if v["valid"]]
+    return (statistics.median(ratios), ratios) if ratios else None
+
+
+def gate_verdict(tracked: list[int], given: int, share: float = GATE_SHARE) -> tuple[bool, float]:
+    """Whether a vocabulary passes the gate: the median over the runs of the frames
+    ORB-SLAM3 tracked is at least ``share`` of the ``given`` frames (a failed run counts 0).
+    Returns (passed, median frames tracked)."""
+    if not tracked or given <= 0:
+        return False, 0.0
+    med = float(statistics.median(tracked))
+    return med >= share * given, med
 
 
 def ours_features(args: argparse.Namespace, camera: Any, kind: str) -> int | None:
@@ -552,15 +768,20 @@ def main() -> int:
     p.add_argument("--config", default=None, help="camera YAML or shipped name, for both systems (as run --config)")
     p.add_argument("--runs", type=int, default=3, help="runs of each system (default 3); every run and the median")
     p.add_argument("--max-frames", type=int, default=None, help="at most this many frames")
-    p.add_argument("--vocab", type=Path, default=None,
-                   help="DBoW2 text vocabulary for ORB-SLAM3 (default: the project's shipped ORB tree, "
-                   "exported once to ~/.cache/orbslam_hgcn/peer/)")
+    p.add_argument("--peer-vocab", "--vocab", dest="peer_vocab", default=None, metavar="FILE",
+                   help="ORB-SLAM3's vocabulary: a DBoW2 text file (.txt, or .txt.gz, gunzipped into "
+                   "~/.cache/orbslam_hgcn/peer/) or an orbslam_hgcn ORB tree (.npz, or a shipped name such as "
+                   "'orb'), exported to DBoW2 text there (default: ../shared/peer/ORBvoc_real_k10L6.txt.gz "
+                   "beside the repository)")
+    p.add_argument("--gate", action="store_true",
+                   help="check the vocabulary: run ORB-SLAM3 only and print frames tracked / given per run; exit "
+                   f"status 0 when the median run tracks at least {GATE_SHARE:.0%} of them, else 1")
     p.add_argument("--ours-args", default="", help="extra arguments for orbslam-hgcn run, e.g. '--sequential'")
     p.add_argument("--peer-bow-level", type=int, default=None, metavar="N",
                    help="tree level at which ORB-SLAM3 groups features for BoW matching; it uses the "
-                   "vocabulary's depth - 4: level 2 of its 6-level ORBvoc.txt, level 1 (10 nodes) of the "
-                   "shipped 5-level tree. Given, ORB-SLAM3 gets a copy of the vocabulary whose header "
-                   "says depth N + 4 (same words and weights)")
+                   "vocabulary's depth - 4: level 2 of a 6-level tree (ORBvoc.txt, the default), level 1 (10 "
+                   "nodes) of orbslam_hgcn's 5-level trees. Given, ORB-SLAM3 gets a copy of the vocabulary whose "
+                   "header says depth N + 4 (same words and weights)")
     p.add_argument("--peer-python", default=sys.executable,
                    help="interpreter with pyorbslam3 installed (default: this one)")
     p.add_argument("--peer-features", type=int, default=None,
@@ -570,6 +791,8 @@ def main() -> int:
     p.add_argument("--load", default="none", choices=["none", "nice19", "hog"],
                    help="CPU load beside every run of both systems, as bench_real.py --load (default none)")
     p.add_argument("--out", type=Path, default=None, help="folder for the runs' outputs (default: a new temp folder)")
+    p.add_argument("--record", default=None, metavar="NAME",
+                   help="write the figures to bench/results/NAME.json (bench/figures.py; refuses on uncommitted code)")
     p.add_argument("--peer-check", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--peer-child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--settings", default=None, help=argparse.SUPPRESS)
@@ -577,14 +800,19 @@ def main() -> int:
     if args.peer_check:
         return peer_check()
     if args.peer_child:
-        return peer_child(str(args.vocab), args.settings, str(args.out), args.speed)
+        return peer_child(str(args.peer_vocab), args.settings, str(args.out), args.speed)
     if args.sequence is None:
         p.error("--sequence is required")
     if args.runs < 1:
         p.error("--runs must be at least 1")
     if args.speed < 0:
         p.error("--speed must not be negative")
+    load_start = os.getloadavg()[0]
 
+    try:
+        vocab, exported = resolve_peer_vocab(args.peer_vocab)
+    except VocabularyNotFound as exc:
+        fail(str(exc))
     version = check_peer(args.peer_python)
 
     from orbslam_hgcn.datasets.factory import detect_kind, open_sequence
@@ -600,61 +828,120 @@ def main() -> int:
     n = len(sequence) if args.max_frames is None else max(0, min(len(sequence), args.max_frames))
     if n == 0:
         fail("no frames to run")
+    camera_span_s = float(sequence.timestamps[n - 1] - sequence.timestamps[0])
     gt = sequence.ground_truth if sequence.ground_truth is not None and len(sequence.ground_truth) >= 3 else None
     out = args.out or Path(tempfile.mkdtemp(prefix="bench_peer_"))
     out.mkdir(parents=True, exist_ok=True)
-    if args.vocab is not None:
-        if not args.vocab.is_file():
-            fail(f"--vocab {args.vocab}: file not found")
-        vocab = args.vocab.resolve()
-    else:
-        vocab = export_vocabulary(Path.home() / ".cache" / "orbslam_hgcn" / "peer" / "ORBvoc_orb_default.txt")
-    if args.peer_bow_level is not None:
-        vocab = vocabulary_with_bow_level(vocab, args.peer_bow_level, out)
+    source = args.peer_vocab or str(DEFAULT_PEER_VOCAB)
+    run_vocab = vocab if args.peer_bow_level is None else vocabulary_with_bow_level(vocab, args.peer_bow_level, out)
     peer_features = args.peer_features or PEER_FEATURES.get(kind, 1000)
     settings = write_settings(out / "orbslam3_settings.yaml", sequence.camera, peer_features)
 
     cam = sequence.camera
     print(f"{sequence.name}: {n} of {len(sequence)} frames, {cam.width}x{cam.height}, {cam.fps:.1f} Hz, "
           f"ground truth: {'yes' if gt is not None else 'no'}")
-    print(f"orbslam_hgcn at {repo_state()}: orbslam-hgcn run {args.ours_args or '(defaults)'}; "
-          f"{ours_features(args, cam, kind) or '?'} ORB features")
+    if not args.gate:
+        print(f"orbslam_hgcn at {repo_state()}: orbslam-hgcn run {args.ours_args or '(defaults)'}; "
+              f"{ours_features(args, cam, kind) or '?'} ORB features")
     print(f"ORB-SLAM3 (pyorbslam3 {version}, monocular, viewer off): {peer_features} ORB features, "
-          f"vocabulary {vocab}{f', BoW matching at tree level {args.peer_bow_level}' if args.peer_bow_level else ''}")
+          f"vocabulary {source}{f' (as {vocab})' if str(vocab) != source else ''}"
+          f"{f', BoW matching at tree level {args.peer_bow_level}' if args.peer_bow_level else ''}")
     pace = "as fast as they are processed" if args.speed == 0 else f"at {args.speed:g}x the camera's rate"
-    print(f"frames {pace}; {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the start; "
+    print(f"frames {pace}; {os.cpu_count()} CPUs, load average {load_start:.1f} at the start; "
           f"load beside each run: {args.load}; outputs in {out}")
     print("tracked: ours, frames with a pose in the final map; ORB-SLAM3, frames in state OK. lost: ours LOST, "
           "ORB-SLAM3 RECENTLY_LOST or LOST. maps: initialisations (a new map after each reset or loss). "
-          "KFs: keyframes of the final map. KF ATE: RMSE after Sim(3) alignment. frames/s: frames / wall s; "
-          "wall s: ours, stats.json real_time.frames_wall_s (first frame's extraction to its stages drained); "
-          "ORB-SLAM3, first frame to Shutdown() returned. start s (not in wall s): ours, the start of its "
-          "extraction and local BA processes; ORB-SLAM3, loading its vocabulary and settings. ms/frame: median "
-          "from an image to its pose: ours from the start of the frame's extraction (unpaced, up to "
-          "threads.prefetch_frames frames ahead of the tracker: the wait in that queue counts), ORB-SLAM3 its "
-          "TrackMonocular call (frames waiting in the pipe do not count). CPU s: the whole process tree, "
-          "start-up included.")
+          "KFs: keyframes of the final map. KF ATE: RMSE after Sim(3) alignment. frames/s: frames / span s, "
+          "from the first image handed in (ours: its extraction starts; ORB-SLAM3: its first TrackMonocular) "
+          "to the last pose out. start s (not in the span): from the bench starting the process to the first "
+          "image handed in. shut s (not in the span): from the last pose out to the system stopped (ours: its "
+          "stages drained; ORB-SLAM3: Shutdown() returned). ms/frame: median from an image to its pose: ours "
+          "from the start of the frame's extraction (unpaced, up to threads.prefetch_frames frames ahead of the "
+          "tracker: the wait in that queue counts), ORB-SLAM3 its TrackMonocular call. CPU s: the whole "
+          "process tree, start-up included.")
+    if args.gate:
+        print(f"gate: ORB-SLAM3 only; the vocabulary passes when the median run tracks at least {GATE_SHARE:.0%} "
+              f"of the {n} frames ({GATE_SHARE * n:.1f})")
+    else:
+        print(f"a run's comparison counts only when both systems track at least {VALID_SHARE:.0%} of the {n} "
+              f"frames ({VALID_SHARE * n:.1f}); the median ratio is over those runs")
     header = " ".join(f"{name:<{w}s}" if name == "system" else f"{name:>{w}s}" for name, w in COLUMNS)
     print(header)
     rows: dict[str, list[dict[str, Any]]] = {"orbslam-hgcn": [], "ORB-SLAM3": []}
+    verdicts: list[dict[str, Any]] = []
     for i in range(args.runs):
-        order = ("ours", "peer") if i % 2 == 0 else ("peer", "ours")
+        order = ("peer",) if args.gate else (("ours", "peer") if i % 2 == 0 else ("peer", "ours"))
+        run_rows = {}
         for who in order:
             procs = start_load(args.load)
             try:
                 if who == "ours":
-                    row = run_ours(args, kind, out / f"run{i + 1}_ours", gt)
+                    row = run_ours(args, kind, out / f"run{i + 1}_ours", gt, camera_span_s)
                 else:
-                    row = run_peer(args, sequence, n, vocab, settings, out / f"run{i + 1}_orbslam3", gt)
+                    row = run_peer(args, sequence, n, run_vocab, settings, out / f"run{i + 1}_orbslam3", gt)
             finally:
                 stop_load(procs)
             rows[row["system"]].append(row)
+            run_rows[who] = row
             print(format_row(str(i + 1), row), flush=True)
+        if args.gate:
+            print(f"   run {i + 1}: ORB-SLAM3 tracked {tracked_of(run_rows['peer'])} / {n} frames", flush=True)
+        else:
+            verdict = compare_run(run_rows["ours"], run_rows["peer"], n)
+            verdicts.append(verdict)
+            print(f"   run {i + 1}: {describe_verdict(verdict, n)}", flush=True)
     for system, rs in rows.items():
+        if args.gate and system == "orbslam-hgcn":
+            continue
         med = median_row(rs, system)
         print(format_row("med", med) if med else f" med {system:<13s} every run failed")
-    (out / "bench_peer.json").write_text(json.dumps(rows, indent=1, default=str))
+    (out / "bench_peer.json").write_text(json.dumps({"rows": rows, "verdicts": verdicts}, indent=1, default=str))
+
+    if args.gate:
+        tracked = [tracked_of(r) for r in rows["ORB-SLAM3"]]
+        passed, med = gate_verdict(tracked, n)
+        verdict_line = (f"{'PASS' if passed else 'FAIL'}: ORB-SLAM3 tracked {', '.join(map(str, tracked))} of {n} "
+                        f"frames (median {med:g}, {med / n:.1%}; needed {GATE_SHARE:.0%})")
+        print(f"gate {verdict_line} with {source}")
+        if args.record:
+            figs = [("vocabulary", source), ("frames given", str(n))]
+            figs += [(f"run {i + 1}", f"tracked {t} / {n}") for i, t in enumerate(tracked)]
+            figs.append(("verdict", verdict_line))
+            record(args.record, f"ORB-SLAM3 vocabulary gate on {sequence.name} ({n} frames, {pace})", figs,
+                   measures=["orbslam_hgcn"] if exported else ["bench/bench_peer.py"], load_start=load_start,
+                   notes=f"pyorbslam3 {version}, {peer_features} ORB features")
+        return 0 if passed else 1
+
+    summary = median_ratio(verdicts)
+    if summary is None:
+        summary_line = f"no valid run of {args.runs}: the comparison is void, no ratio"
+    else:
+        med_ratio, ratios = summary
+        summary_line = (f"median ratio {med_ratio:.2f}x over {len(ratios)} valid run(s) of {args.runs} "
+                        f"(run by run {', '.join(f'{r:.2f}x' for r in ratios)})")
+    print(summary_line)
+    if args.record:
+        figs = [("vocabulary", source), ("frames given", str(n))]
+        for i, verdict in enumerate(verdicts):
+            o, q = rows["orbslam-hgcn"][i], rows["ORB-SLAM3"][i]
+            sides = "; ".join(
+                f"{r['system']} failed" if "error" in r else
+                f"{r['system']} tracked {r['tracked']:.0f}, {r['fps']:.2f} frames/s, start {r['start_s']:.1f} s, "
+                f"shutdown {r['shutdown_s']:.2f} s" for r in (o, q))
+            figs.append((f"run {i + 1}", f"{sides}; {describe_verdict(verdict, n)}"))
+        figs.append(("median", summary_line))
+        record(args.record, f"ORB-SLAM3 beside `orbslam-hgcn run` on {sequence.name} ({n} frames, {pace})", figs,
+               load_start=load_start, notes=f"pyorbslam3 {version}, {peer_features} ORB features, "
+               f"ours with {args.ours_args or 'defaults'}")
     return 0
+
+
+def record(name: str, title: str, figs: list[tuple[str, str]], **kwargs: Any) -> None:
+    """Write the figures through bench/figures.py (which refuses on uncommitted code)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import figures
+
+    figures.record(name, title, figs, bench_file=__file__, **kwargs)
 
 
 if __name__ == "__main__":
