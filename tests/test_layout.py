@@ -1,11 +1,13 @@
 """The package's layout: every module imports on its own, no import cycles (counting imports
-inside functions), and imports flow one way between the layers of ARCHITECTURE.md:
+inside functions), and imports flow one way between the layers that docs/ARCHITECTURE.md
+states in its tables (checked to be the LAYERS and AGAINST_THE_FLOW below):
 geometry -> features -> match -> map -> vocabulary/backend -> stages -> runtime -> app -> cli."""
 
 from __future__ import annotations
 
 import ast
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +16,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "orbslam_hgcn"
+
+ARCHITECTURE = ROOT / "docs" / "ARCHITECTURE.md"
 
 # Layers of the one-way flow; an import may go to a lower layer or stay in its own package.
 LAYERS = {
@@ -37,6 +41,33 @@ AGAINST_THE_FLOW = {
     ("orbslam_hgcn.map.database", "orbslam_hgcn.vocabulary"),
     ("orbslam_hgcn.map.database", "orbslam_hgcn.vocabulary.bow"),
 }
+
+
+def doc_tables(text: str) -> dict[str, list[list[str]]]:
+    """The markdown tables of a page, by their header row ("layer | packages"): the rows'
+    cells, without the header and the rule."""
+    tables: dict[str, list[list[str]]] = {}
+    lines = text.splitlines()
+    for i, line in enumerate(lines[:-1]):
+        if line.startswith("|") and re.fullmatch(r"\|(\s*:?-+:?\s*\|)+", lines[i + 1].strip()):
+            head = " | ".join(c.strip() for c in line.strip().strip("|").split("|"))
+            rows = []
+            for row in lines[i + 2:]:
+                if not row.startswith("|"):
+                    break
+                rows.append([c.strip().strip("`") for c in row.strip().strip("|").split("|")])
+            tables[head] = rows
+    return tables
+
+
+def documented_layers(text: str) -> tuple[dict[str, int], set[tuple[str, str]]]:
+    """The layers ("layer | packages" table) and the imports against the flow ("importer |
+    imported" table) that docs/ARCHITECTURE.md states."""
+    tables = doc_tables(text)
+    if "layer | packages" not in tables or "importer | imported" not in tables:
+        raise ValueError("docs/ARCHITECTURE.md has no 'layer | packages' or 'importer | imported' table")
+    layers = {p.strip(): int(n) for n, packages in tables["layer | packages"] for p in packages.split(",")}
+    return layers, {(a, b) for a, b in tables["importer | imported"]}
 
 
 def package_modules() -> dict[str, tuple[Path, bool]]:
@@ -163,6 +194,23 @@ def test_imports_flow_one_way(graph):
                 if (mod, target) not in AGAINST_THE_FLOW:
                     against.append(f"{mod}:{line} imports {target}")
     assert against == []
+
+
+def test_the_layers_are_those_architecture_md_states():
+    layers, against = documented_layers(ARCHITECTURE.read_text())
+    assert layers == LAYERS
+    assert against == AGAINST_THE_FLOW
+    # The stages are one layer, as test_stages_meet_only_in_the_runtime assumes.
+    assert {LAYERS[s] for s in STAGES} == {max(LAYERS[s] for s in STAGES)}
+
+
+def test_documented_layers_read_a_changed_table():
+    text = ARCHITECTURE.read_text()
+    moved = text.replace("| 4 | vocabulary, backend |", "| 4 | vocabulary |\n| 5 | backend |", 1)
+    assert moved != text
+    assert documented_layers(moved)[0]["backend"] == 5
+    with pytest.raises(ValueError):
+        documented_layers("# no tables")
 
 
 def test_stages_meet_only_in_the_runtime(graph):
