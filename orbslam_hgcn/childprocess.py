@@ -14,6 +14,15 @@ exception in the child comes back as ``error_type`` (a
 the child stays up for the next request. A child that died is reported as ``error_type``
 with ``lost=True`` by the request that finds it dead; it is replaced (as one interrupted
 mid-request) on the next.
+
+Signals: Ctrl-C (SIGINT) and SIGTERM are the parent's to handle. A child ignores SIGINT,
+and defers SIGTERM by ``term_grace_s``: a SIGTERM sent to the whole process group (``kill
+-- -PGID``, ``timeout``, a service manager) reaches the parent and its children at once;
+the parent then ends its run as on Ctrl-C and stops its children itself, which exit
+cleanly within the grace. A SIGTERM sent to a child alone ends it after the grace, and the
+parent replaces it as any lost child. While the parent is stopping (:func:`stopping`,
+set by the command line's SIGTERM handler) a child that dies is reported as ended by the
+stop, and none is started again.
 """
 
 from __future__ import annotations
@@ -33,11 +42,49 @@ log = logging.getLogger(__name__)
 
 StopFn = Callable[[], bool] | None
 
+# How long a child outlives a SIGTERM (see the module text): time for its parent, stopping
+# on the same signal, to finish the keyframes handed to mapping and close it.
+TERM_GRACE_S = 10.0
 
-def _serve(conn: Any, abort: Any, factory: Callable[..., Any], factory_args: tuple, nice: int) -> None:
+# Set while this process stops on a signal (the command line's SIGTERM handler): its
+# children are not started again, and one that dies is not reported as lost.
+_stopping = threading.Event()
+
+
+def set_stopping(on: bool = True) -> None:
+    """Say that this process is stopping (``on``) or no longer (a command that ended)."""
+    if on:
+        _stopping.set()
+    else:
+        _stopping.clear()
+
+
+def stopping() -> bool:
+    """Whether this process is stopping (:func:`set_stopping`)."""
+    return _stopping.is_set()
+
+
+def _defer_sigterm(grace_s: float) -> None:
+    """In a child: on SIGTERM, exit by SIGTERM only ``grace_s`` later, unless the parent
+    closes the child before."""
+
+    def handler(signum: int, frame: object) -> None:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends it at once
+        timer = threading.Timer(grace_s, os.kill, (os.getpid(), signal.SIGTERM))
+        timer.daemon = True  # a child the parent closes meanwhile exits without waiting
+        timer.start()
+
+    signal.signal(signal.SIGTERM, handler)
+
+
+def _serve(
+    conn: Any, abort: Any, factory: Callable[..., Any], factory_args: tuple, nice: int,
+    term_grace_s: float = TERM_GRACE_S,
+) -> None:  # fmt: skip
     """Child process loop: answer ``(method, args, stoppable)`` requests until ``None`` or a
     closed pipe."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    _defer_sigterm(term_grace_s)  # so is a SIGTERM sent to the process group
     if nice > 0 and hasattr(os, "nice"):
         os.nice(nice)
     obj = factory(*factory_args)
@@ -72,7 +119,8 @@ class ChildProcess:
     name: names the process (``orbslam-<name>``) and the errors (their ``stage``);
     error_type: a StageError class, raised for a failed request or a lost child; poll_s:
     how often the waiting thread looks at ``should_stop`` and at the child's health; nice:
-    added to the child's niceness (lower CPU priority) where the platform has ``os.nice``.
+    added to the child's niceness (lower CPU priority) where the platform has ``os.nice``;
+    term_grace_s: how long the child outlives a SIGTERM (see the module text).
     """
 
     def __init__(
@@ -83,9 +131,11 @@ class ChildProcess:
         error_type: type[StageError] = StageError,
         poll_s: float = 0.005,
         nice: int = 0,
+        term_grace_s: float = TERM_GRACE_S,
     ) -> None:
         self.name = name
         self.nice = int(nice)
+        self.term_grace_s = float(term_grace_s)
         self.factory, self.factory_args = factory, factory_args
         self.error_type = error_type
         self.poll_s = poll_s
@@ -113,7 +163,7 @@ class ChildProcess:
         parent, child = self._ctx.Pipe()
         self._abort = self._ctx.Event()
         proc = self._ctx.Process(
-            target=_serve, args=(child, self._abort, self.factory, self.factory_args, self.nice),
+            target=_serve, args=(child, self._abort, self.factory, self.factory_args, self.nice, self.term_grace_s),
             name=f"orbslam-{self.name}", daemon=True,
         )  # fmt: skip
         try:
@@ -133,7 +183,9 @@ class ChildProcess:
             if self._proc is not None and not self._proc.is_alive():
                 code = self._proc.exitcode
                 self._close_locked()
-                raise self._error(f"{self.name} process died (exit code {code}) before {op}", lost=True)
+                raise self._lost(f"died (exit code {code}) before {op}")
+            if stopping() and not self.alive:
+                raise self._error(f"{self.name} process not started for {op}: this process is stopping", lost=True)
             self._start()
             self._abort.clear()
             try:
@@ -142,9 +194,7 @@ class ChildProcess:
                 self._conn.send((op, args, stoppable))
                 while not self._conn.poll(self.poll_s):
                     if not self._proc.is_alive():
-                        raise self._error(
-                            f"{self.name} process died (exit code {self._proc.exitcode}) during {op}", lost=True
-                        )
+                        raise self._lost(f"died (exit code {self._proc.exitcode}) during {op}")
                     if should_stop is not None and not self._abort.is_set() and should_stop():
                         self._abort.set()
                 reply = self._conn.recv()
@@ -154,7 +204,7 @@ class ChildProcess:
             except (EOFError, OSError) as exc:
                 code = self._proc.exitcode if self._proc is not None else None
                 self._close_locked()
-                raise self._error(f"{self.name} process lost during {op} (exit code {code})", lost=True) from exc
+                raise self._lost(f"lost during {op} (exit code {code})") from exc
             except BaseException:
                 # Interrupted while waiting (Ctrl-C, a failing callback): the reply would be
                 # out of step with the next request, so the process is replaced.
@@ -169,6 +219,12 @@ class ChildProcess:
 
     def _error(self, message: str, lost: bool = False) -> StageError:
         return self.error_type(message, stage=f"{self.name} process", lost=lost)
+
+    def _lost(self, what: str) -> StageError:
+        """The error of a child that died: ``what`` happened to it (and why, when this
+        process is stopping)."""
+        why = "; this process is stopping: not started again" if stopping() else ""
+        return self._error(f"{self.name} process {what}{why}", lost=True)
 
     def kill(self) -> None:
         """Kill the child at once (tests use it to check that a lost child is reported)."""
@@ -193,9 +249,9 @@ class ChildProcess:
                 pass
         if proc is not None:
             proc.join(timeout)
-            if proc.is_alive():
-                log.warning("%s process did not stop in %.0f s; terminating it", self.name, timeout)
-                proc.terminate()
+            if proc.is_alive():  # killed: a child outlives a SIGTERM (term_grace_s)
+                log.warning("%s process did not stop in %.0f s; killing it", self.name, timeout)
+                proc.kill()
                 proc.join(timeout)
         if conn is not None:
             conn.close()

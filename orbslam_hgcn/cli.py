@@ -20,6 +20,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from orbslam_hgcn import __version__
+from orbslam_hgcn.childprocess import set_stopping
 from orbslam_hgcn.errors import OrbslamError, StageError, Terminated
 
 log = logging.getLogger("orbslam_hgcn")
@@ -75,9 +76,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
+        set_stopping(False)
 
 
 def _terminate(signum: int, frame: object) -> None:
+    # The child processes got the signal too when it was sent to the process group: they
+    # outlive it while the command stops them (orbslam_hgcn.childprocess); none starts again.
+    set_stopping(True)
     raise Terminated()
 
 

@@ -261,8 +261,8 @@ def run_dataset(
         try:
             summary = system.run(sequence, max_frames, progress=progress, on_bad_frame=on_bad_frame)
             if summary.interrupted:
-                kind = "terminated" if summary.stop_reason == TERMINATED else "interrupted"
-                end = RunEnd(kind, summary.stop_reason or kind)
+                end_kind = "terminated" if summary.stop_reason == TERMINATED else "interrupted"
+                end = RunEnd(end_kind, summary.stop_reason or end_kind)
         except FrameError as exc:
             end = RunEnd("bad_frame", _first_line(exc), frame=exc.frame)
         except StageError as exc:

@@ -62,6 +62,7 @@ from orbslam_hgcn.config import (
     load_yaml,
     section_from_yaml,
 )
+from orbslam_hgcn.childprocess import stopping
 from orbslam_hgcn.datasets import Sequence, png
 from orbslam_hgcn.datasets.base import FrameRecord, SequenceEnded
 from orbslam_hgcn.errors import ConfigError, DatasetError, FrameError, Terminated
@@ -544,6 +545,10 @@ class System:
             except ExtractionError as exc:
                 # A process that died (killed, out of memory) is replaced by the next request;
                 # this frame is extracted here meanwhile. An error it reports is a bug: raised.
+                # While this process stops (SIGTERM) it is neither lost nor replaced.
+                if exc.lost and stopping():
+                    log.debug("%s", exc)
+                    return extractor.extract(image, self.camera)
                 if not exc.lost or self.n_extraction_lost >= MAX_LOST_EXTRACTION:
                     raise
                 self.n_extraction_lost += 1
