@@ -12,11 +12,10 @@ or by the caller, and stops with an :class:`OrbslamError` before anything is all
 
 from __future__ import annotations
 
-import os
+from orbslam_hgcn.memory import LIMIT_ENV, available_bytes, check_memory, format_bytes
 
-from orbslam_hgcn.errors import OrbslamError
-
-LIMIT_ENV = "ORBSLAM_HGCN_MEMORY_LIMIT_MB"
+__all__ = ["LIMIT_ENV", "available_bytes", "bow_bytes", "check_memory", "chow_liu_bytes", "fabmap_bytes",
+           "format_bytes"]
 
 # The Chow-Liu tree: per varying word, the counts, one mutual-information row and its
 # temporaries, Prim's best/best_from/parent/in_tree arrays and the root search's entropy order;
@@ -42,45 +41,3 @@ def fabmap_bytes(v_occ: int, nnz: int, n_words: int, n_test: int) -> int:
 def bow_bytes(n_test: int) -> int:
     """Bytes of the BoW detector: its (n, n) similarity matrix and the metrics' copies."""
     return _NN_ARRAYS * 8 * n_test * n_test
-
-
-def available_bytes(limit_mb: float | None = None) -> int | None:
-    """Memory the process may use: ``limit_mb`` if given, else ``$ORBSLAM_HGCN_MEMORY_LIMIT_MB``,
-    else ``MemAvailable`` of ``/proc/meminfo``, else the free pages of ``os.sysconf``; None
-    when none of them is known."""
-    if limit_mb is None:
-        env = os.environ.get(LIMIT_ENV, "").strip()
-        if env:
-            try:
-                limit_mb = float(env)
-            except ValueError:
-                raise OrbslamError(f"{LIMIT_ENV}={env!r}: not a number of megabytes") from None
-    if limit_mb is not None:
-        return int(limit_mb * 2**20)
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
-    except (OSError, ValueError, AttributeError):
-        return None
-
-
-def format_bytes(n: float) -> str:
-    if n >= 2**30:
-        return f"{n / 2**30:.1f} GiB"
-    return f"{n / 2**20:.0f} MiB"
-
-
-def check_memory(needed: int, what: str, way_out: str, *, limit_mb: float | None = None) -> None:
-    """An OrbslamError when ``needed`` bytes exceed the memory available (see
-    :func:`available_bytes`); the message names both and ``way_out``."""
-    avail = available_bytes(limit_mb)
-    if avail is not None and needed > avail:
-        raise OrbslamError(
-            f"{what} needs about {format_bytes(needed)} of memory but {format_bytes(avail)} is available; {way_out}"
-        )
