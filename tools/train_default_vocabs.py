@@ -1,26 +1,28 @@
 """Build the shipped vocabularies (orbslam_hgcn/data/vocab_{orb,hgcn,kmeans}_default.npz and
-vocab_orb10k.npz).
+vocab_orb10k.npz) from real photographs.
 
-Training imagery: synthetic office scenes rendered by ``orbslam_hgcn.synth.sequence``
-with scene (and texture) seeds 1001..1000+S, far from the seeds evaluation sequences use
-(0 and small numbers), each seen along one generated loop round its desk, sampled sparsely
-(default 60 frames per loop) so the images cover the whole room. The shipped files use
-these only. ``--with-real`` adds real frames: the samples of KITTI odometry 00 (frames
-0-159), TUM fr3 long_office_household (19 frames) and EuRoC V1_01_easy (every 5th of
-frames 0-94) in ``../shared/data`` (``--real PATH ...`` for other sequences); those frames
-must then not be used to evaluate loop detection with the vocabularies. Every vocabulary is trained on the same descriptors
-(ORB-SLAM's extractor, 1000 features per image); the HGCN's seed labels are shared along
-feature tracks matched between consecutive frames of each scene. ``kmeans`` is the HGCN
-vocabulary's ablation (its PCA and seed k-means at the same word count, without the graph
-and the network); ``orb10k`` is the ORB tree at about that size (k=10, L=4). The run is reproducible: the same
-arguments give the same files (up to the creation date in the metadata).
+Training imagery: the photos of ``shared/data/real_photos`` (``--photos`` for another folder
+laid out the same way) less the held-out images of
+:data:`orbslam_hgcn.vocabulary.training.photos.HOLDOUT`, which the benches use to judge the
+vocabularies on real images no vocabulary has seen. No benchmark sequence (KITTI, TUM,
+EuRoC) and no render is in it. ``--with-renders`` adds rendered office loops
+(``orbslam_hgcn.synth``, scene seeds 1001..), for measuring whether renders help; the shipped
+files do not use them.
 
-    python tools/train_default_vocabs.py                 # render, extract, train both
-    python tools/train_default_vocabs.py --kinds hgcn    # only the HGCN vocabulary
-    python tools/train_default_vocabs.py --kinds kmeans orb10k
-    python tools/train_default_vocabs.py --with-real --out-dir DIR   # real frames as well
+Every vocabulary is trained on the same descriptors (ORB-SLAM's extractor, 1000 features per
+image): ``orb`` is the ORB tree at the shape of ORB-SLAM's ORBvoc (k = 10, L = 6),
+``orb10k`` the tree at the flat vocabularies' size (k = 10, L = 4), ``kmeans`` the HGCN
+vocabulary's ablation (its PCA and seed k-means at the same word count), ``hgcn`` the HGCN
+vocabulary, whose seed labels are shared along feature tracks matched between consecutive
+images of each photo source (the CamVid drives and the head-worn walks are video frames). The
+run is reproducible: the same arguments give the same files (up to the creation date).
 
-Rendered frames and the descriptor cache stay in ``--work-dir`` for later runs.
+    python tools/train_default_vocabs.py                 # all four
+    python tools/train_default_vocabs.py --kinds orb     # only the ORB tree
+    python tools/train_default_vocabs.py --out-dir DIR   # write elsewhere
+
+The descriptor cache and the tracks stay in ``--work-dir`` for later runs (and for
+tools/train_graph_vocab.py).
 """
 
 from __future__ import annotations
@@ -32,27 +34,24 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 
 from orbslam_hgcn.config import HgcnTrainConfig, TreeTrainConfig
-from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
 from orbslam_hgcn.vocabulary.loading import SHIPPED
+from orbslam_hgcn.vocabulary.training import photos
 from orbslam_hgcn.vocabulary.training.tracks import build_tracks
-from orbslam_hgcn.vocabulary.training.train import extract_descriptors, open_image_source, select_images, train_vocabulary
+from orbslam_hgcn.vocabulary.training.train import TrainingData, extract_descriptors, open_image_source, select_images, train_vocabulary
 
 log = logging.getLogger("train_default_vocabs")
 
 FIRST_SCENE_SEED = 1001
-SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
-# (folder under SHARED_DATA, every n-th frame, description for the metadata)
-REAL_SAMPLES = [
-    ("kitti00_first160/sequences/00", 1, "KITTI odometry 00 frames 0-159"),
-    ("tum_fr3_long_office_household_sample", 1, "TUM RGB-D fr3 long_office_household, 19 sample frames"),
-    ("euroc_V1_01_easy_first95", 5, "EuRoC V1_01_easy cam0, every 5th of frames 0-94"),
-]
+ORB_LEVELS = 6  # ORB-SLAM's ORBvoc.txt: k = 10, L = 6
 
 
 def render_training_scenes(work: Path, n_scenes: int, frames: int, progress: bool) -> list[Path]:
     """Render (or reuse) one sparse loop per training scene; returns the sequence folders."""
+    from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence
+
     folders = []
     for k in range(n_scenes):
         seed = FIRST_SCENE_SEED + k
@@ -62,70 +61,71 @@ def render_training_scenes(work: Path, n_scenes: int, frames: int, progress: boo
     return folders
 
 
+def training_data(work: Path, photo_folder: Path, features: int, renders: int = 0,
+                  frames: int = 60) -> tuple[TrainingData, str, str]:
+    """Descriptors of the training photos (and renders), the metadata's ``trained_on`` line,
+    and the tag naming the cache files."""
+    sources = photos.photo_sources(photo_folder, "train")
+    trained_on = photos.describe(photo_folder, "train")
+    tag = f"photos{sum(s.n for s in sources)}"
+    if renders:
+        folders = render_training_scenes(work, renders, frames, progress=True)
+        sources += [open_image_source(f) for f in folders]
+        trained_on += (f"; renders: synthetic office loops, scene seeds {FIRST_SCENE_SEED}.."
+                       f"{FIRST_SCENE_SEED + renders - 1}, {frames} frames each")
+        tag += f"_renders{renders}x{frames}"
+    tag += f"_{features}"
+    pairs = select_images(sources, None)
+    data = extract_descriptors(sources, pairs, features, work / f"descriptors_{tag}.npz")
+    return data, trained_on, tag
+
+
+def training_tracks(work: Path, data: TrainingData, tag: str) -> np.ndarray:
+    """Feature tracks of the training descriptors (cached in ``work``)."""
+    track_file = work / f"tracks_{tag}.npz"
+    if track_file.is_file():
+        return np.load(track_file)["track"]
+    track_ids = build_tracks(*data.per_image(), data.groups)
+    np.savez(track_file, track=track_ids)
+    return track_ids
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--work-dir", type=Path, default=Path.home() / ".cache" / "orbslam_hgcn" / "vocab_training")
-    ap.add_argument("--scenes", type=int, default=10, help="training scenes (seeds 1001..)")
-    ap.add_argument("--frames", type=int, default=60, help="frames per scene, spread over one loop")
+    ap.add_argument("--photos", type=Path, default=photos.default_photo_folder(),
+                    help="folder of real photos named <source>_<NNNN>.jpg (default: shared/data/real_photos)")
     ap.add_argument("--features", type=int, default=1000, help="ORB features per image")
     ap.add_argument("--kinds", nargs="+", choices=("orb", "hgcn", "kmeans", "orb10k"),
-                    default=["orb", "hgcn", "kmeans", "orb10k"])
+                    default=["orb", "orb10k", "kmeans", "hgcn"])
     ap.add_argument("--hgcn-words", type=int, default=HgcnTrainConfig.n_words, help="hgcn and kmeans words")
-    ap.add_argument("--orb-levels", type=int, default=TreeTrainConfig.levels)
+    ap.add_argument("--orb-levels", type=int, default=ORB_LEVELS)
     ap.add_argument("--no-tracks", action="store_true",
-                    help="hgcn: no shared labels along feature tracks of consecutive frames")
-    ap.add_argument("--with-real", action="store_true",
-                    help="train on the real samples in ../shared/data as well")
-    ap.add_argument("--real", nargs="+", type=Path, default=None,
-                    help="train on these real sequences as well (every frame)")
+                    help="hgcn: no shared labels along feature tracks of consecutive images")
+    ap.add_argument("--with-renders", type=int, default=0, metavar="S",
+                    help="add S rendered office loops (60 frames each) to the photos (not in the shipped files)")
     ap.add_argument("--out-dir", type=Path, default=None, help="write here instead of orbslam_hgcn/data/")
-    ap.add_argument("--render-only", action="store_true", help="only render the training scenes")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     args.work_dir.mkdir(parents=True, exist_ok=True)
-
-    t0 = time.perf_counter()
-    folders = render_training_scenes(args.work_dir, args.scenes, args.frames, progress=True)
-    log.info("rendered %d scenes in %.0f s", len(folders), time.perf_counter() - t0)
-    if args.render_only:
-        return 0
-    sources = [open_image_source(f) for f in folders]
-    pairs = select_images(sources, None)
-    trained_on = (f"synthetic office scenes (orbslam_hgcn.synth.sequence, loop trajectory, noise 2, "
-                  f"exposure drift 0.1), scene/texture seeds {FIRST_SCENE_SEED}..{FIRST_SCENE_SEED + args.scenes - 1}, "
-                  f"{args.frames} frames each")
-    real = [(p, 1, str(p)) for p in args.real or []]
-    if args.with_real:
-        real += [(SHARED_DATA / sub, step, text) for sub, step, text in REAL_SAMPLES]
-    missing = [str(p) for p, _, _ in real if not p.exists()]
-    if missing:
-        ap.error(f"real sequences not found: {', '.join(missing)}")
-    for path, step, text in real:
-        sources.append(open_image_source(path))
-        k = len(sources) - 1
-        pairs += [(k, i) for i in range(0, sources[k].n, step)]
-    n_real = len(pairs) - sum(s.n for s in sources[: len(folders)])
-    trained_on += ("; real: " + "; ".join(f"{text} ({sum(1 for s, _ in pairs if s == len(folders) + j)} images)"
-                                          for j, (_, _, text) in enumerate(real))) if real else "; no evaluation imagery"
-    tag = f"_real{n_real}" if real else ""
-    cache = args.work_dir / f"descriptors_{args.scenes}x{args.frames}{tag}_{args.features}.npz"
-    data = extract_descriptors(sources, pairs, args.features, cache)
-    desc, image_ids = data.desc, data.image_ids
-    log.info("%d descriptors from %d images (%d real)", len(desc), len(pairs), n_real)
+    if not args.photos.is_dir():
+        ap.error(f"--photos {args.photos}: no such folder")
+    data, trained_on, tag = training_data(args.work_dir, args.photos, args.features, args.with_renders)
+    log.info("%d descriptors from %d images", len(data.desc), len(data.groups))
     for kind in args.kinds:
         out = SHIPPED[kind] if args.out_dir is None else args.out_dir / SHIPPED[kind].name
         t = time.perf_counter()
         if kind in ("orb", "orb10k"):
             levels = args.orb_levels if kind == "orb" else 4
-            vocab = train_vocabulary("orb", desc, image_ids, tree=TreeTrainConfig(levels=levels),
+            vocab = train_vocabulary("orb", data.desc, data.image_ids, tree=TreeTrainConfig(levels=levels),
                                      trained_on=trained_on)
         elif kind == "kmeans":
-            vocab = train_vocabulary("kmeans", desc, image_ids,
+            vocab = train_vocabulary("kmeans", data.desc, data.image_ids,
                                      hgcn=dataclasses.replace(HgcnTrainConfig(), n_words=args.hgcn_words),
                                      trained_on=trained_on)
         else:
-            track_ids = None if args.no_tracks else build_tracks(*data.per_image(), data.groups)
-            vocab = train_vocabulary("hgcn", desc, image_ids,
+            track_ids = None if args.no_tracks else training_tracks(args.work_dir, data, tag)
+            vocab = train_vocabulary("hgcn", data.desc, data.image_ids,
                                      hgcn=dataclasses.replace(HgcnTrainConfig(), n_words=args.hgcn_words),
                                      track_ids=track_ids, trained_on=trained_on)
         vocab.metadata.params["n_features"] = args.features

@@ -5,11 +5,11 @@ C-att of the track-words ablation) or plain mean aggregation (arm C).
 The words are those of the shipped k-means vocabulary (its PCA and centroids: a lone
 descriptor gets its k-means word); the file adds the track network
 (:mod:`orbslam_hgcn.vocabulary.track_network`), trained by
-:func:`orbslam_hgcn.vocabulary.training.track_net.train_track_network` on the imagery of
-``tools/train_default_vocabs.py --with-real`` (the k-means vocabulary's own training
-data: the ten synthetic office loops and the real samples), with feature tracks matched
-between consecutive frames of each sequence. Rendered frames, the descriptor cache and
-the tracks are kept in ``--work-dir`` (the same cache name as train_default_vocabs.py).
+:func:`orbslam_hgcn.vocabulary.training.track_net.train_track_network` on the k-means
+vocabulary's own training data (the real photographs of ``tools/train_default_vocabs.py``,
+held-out images excluded), with feature tracks matched between consecutive images of each
+photo source. The descriptor cache and the tracks are shared with train_default_vocabs.py
+in ``--work-dir``.
 
     python tools/train_graph_vocab.py                        # attention: vocab_hgcn_graph.npz
     python tools/train_graph_vocab.py --aggregation mean     # vocab_hgcn_graph_mean.npz
@@ -24,18 +24,16 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from train_default_vocabs import FIRST_SCENE_SEED, REAL_SAMPLES, SHARED_DATA, render_training_scenes  # noqa: E402
+from train_default_vocabs import training_data, training_tracks  # noqa: E402
 
 from orbslam_hgcn.vocabulary import load_vocabulary  # noqa: E402
 from orbslam_hgcn.vocabulary.base import VocabularyMetadata, now_iso  # noqa: E402
 from orbslam_hgcn.vocabulary.hgcn_vocab import HGCNVocabulary  # noqa: E402
 from orbslam_hgcn.vocabulary.loading import SHIPPED  # noqa: E402
 from orbslam_hgcn.vocabulary.training.track_net import TrackNetConfig, train_track_network  # noqa: E402
-from orbslam_hgcn.vocabulary.training.tracks import build_tracks  # noqa: E402
-from orbslam_hgcn.vocabulary.training.train import extract_descriptors, open_image_source, select_images  # noqa: E402
+from orbslam_hgcn.vocabulary.training import photos  # noqa: E402
 
 log = logging.getLogger("train_graph_vocab")
 
@@ -43,8 +41,8 @@ log = logging.getLogger("train_graph_vocab")
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--work-dir", type=Path, default=Path.home() / ".cache" / "orbslam_hgcn" / "vocab_training")
-    ap.add_argument("--scenes", type=int, default=10)
-    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--photos", type=Path, default=photos.default_photo_folder(),
+                    help="folder of real photos named <source>_<NNNN>.jpg (default: shared/data/real_photos)")
     ap.add_argument("--features", type=int, default=1000)
     ap.add_argument("--words", default="kmeans", help="the vocabulary whose PCA and words are used (default kmeans)")
     ap.add_argument("--aggregation", choices=("attention", "mean"), default="attention")
@@ -62,22 +60,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     args.work_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    folders = render_training_scenes(args.work_dir, args.scenes, args.frames, progress=False)
-    sources = [open_image_source(f) for f in folders]
-    pairs = select_images(sources, None)
-    for sub, step, _ in REAL_SAMPLES:
-        sources.append(open_image_source(SHARED_DATA / sub))
-        k = len(sources) - 1
-        pairs += [(k, i) for i in range(0, sources[k].n, step)]
-    n_real = len(pairs) - args.scenes * args.frames
-    tag = f"{args.scenes}x{args.frames}_real{n_real}_{args.features}"
-    data = extract_descriptors(sources, pairs, args.features, args.work_dir / f"descriptors_{tag}.npz", progress=False)
-    track_file = args.work_dir / f"tracks_{tag}.npz"
-    if track_file.is_file():
-        track_ids = np.load(track_file)["track"]
-    else:
-        track_ids = build_tracks(*data.per_image(), data.groups, progress=False)
-        np.savez(track_file, track=track_ids)
+    if not args.photos.is_dir():
+        ap.error(f"--photos {args.photos}: no such folder")
+    data, photos_line, tag = training_data(args.work_dir, args.photos, args.features)
+    track_ids = training_tracks(args.work_dir, data, tag)
     words = load_vocabulary(args.words)
     if not hasattr(words, "centroids"):
         ap.error(f"--words {args.words}: needs a flat vocabulary with centroids (kmeans)")
@@ -89,12 +75,10 @@ def main(argv: list[str] | None = None) -> int:
     net, stats = train_track_network(x, track_ids, words.centroids, cfg, desc=data.desc, device=args.device)
     history = stats.pop("validation_history")
     stats["validation_history_every_10"] = history[::10]
-    trained_on = (f"track network: synthetic office scenes, seeds {FIRST_SCENE_SEED}.."
-                  f"{FIRST_SCENE_SEED + args.scenes - 1}, {args.frames} frames each; real: "
-                  + "; ".join(text for _, _, text in REAL_SAMPLES) + f"; words: {words.metadata.trained_on}")
+    trained_on = f"track network: {photos_line}; words: {words.metadata.trained_on}"
     meta = VocabularyMetadata(
         kind="hgcn", n_words=words.n_words, descriptor_type=words.descriptor_type,
-        descriptor_dim=words.metadata.descriptor_dim, trained_on=trained_on, n_images=len(pairs),
+        descriptor_dim=words.metadata.descriptor_dim, trained_on=trained_on, n_images=len(data.groups),
         n_descriptors=len(x), created=now_iso(),
         params={"arm": "C-att" if args.aggregation == "attention" else "C",
                 "words": f"k-means centroids of {args.words!r} (a lone descriptor keeps its k-means word)",
