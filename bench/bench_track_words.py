@@ -70,9 +70,29 @@ sequences of a family its units):
   frames, loop within 4 m: the test suite checks that the stretch has none). A
   false-positive check, not AP: per arm, the threshold that gives 90% precision on the
   pooled top-1 detections of the validation offices (``--calib-seeds``, default 0 1 2)
-  and how many of the stretch's queries score at least that, and its highest score.
+  and how many of the stretch's queries score at least that, and its highest score;
+* ``photos``: real photographs no vocabulary trains on, the held-out images of
+  ``shared/data/real_photos`` (``--photo-dir``;
+  :func:`orbslam_hgcn.vocabulary.training.photos.photo_files` ``heldout``: CamVid
+  ``camvid_0560``..``0700``, street driving, video frames about 1 s apart). Units
+  (:func:`photo_units`): the 141 held-out CamVid images in order, cut into 6 blocks of 23-24
+  consecutive images (``round(n / 24)`` near-equal blocks), each block a sequence whose
+  images are its keyframes, one frame apart. Loop truth by geometric verification, not by
+  pose (there is none): two images of a unit are the same place when
+  :func:`~orbslam_hgcn.vocabulary.training.tracks.match_pair` (mutual nearest neighbours,
+  ratio test, RANSAC fundamental matrix) finds at least 40 inliers between their ORB-SLAM
+  extractor features (``--min-inliers``; unrelated images get about 9). Database gap 2
+  images (the next image is too easy; the track window is then the image and the one
+  before it); tracks from consecutive images as for the other families. No depth: the
+  same-point repeatability is n/a. The held-out ICDAR 2015 images
+  (``icdar2015_0400``..``0499``) are not units: their consecutive images share no geometry
+  (at most 10 inliers between any two consecutive ones: separate views, not a walk), so a
+  unit of them would hold no true pair. At gap 2, 97 of the 129 queries have a true pair in
+  their database (3, 9, 22, 21, 21, 21 per unit; gap 2 kept). The last four units are a slow
+  stretch behind cyclists: 227-236 of their 231-253 image pairs are true, so nearly every
+  detection there is right whatever the words, and the first two units carry the contrasts.
 
-The street, replay and KITTI settings were set before their first run and not tuned.
+The street, replay, KITTI and photos settings were set before their first run and not tuned.
 
 Settings were frozen on validation scene seeds 0, 1, 2 (``--scene-seeds 0 1 2``) before the
 test run on the default seeds 10..29, by a rule fixed beforehand and blind to the arms'
@@ -84,7 +104,7 @@ depth points, are kept in ``--cache-dir``; ``--prepare-only`` makes them (run a 
 on disjoint seeds), after which a run only computes the arms. ``--json`` writes everything;
 ``--record NAME`` the README's figures (``bench/figures.py``).
 
-    python bench/bench_track_words.py [--family office|street|replay|kitti|map] [--scene-seeds 10 11 ...]
+    python bench/bench_track_words.py [--family office|street|replay|kitti|map|photos] [--scene-seeds 10 11 ...]
         [--sizes 8000 1000] [--jobs 2] [--json out.json]
 """
 
@@ -117,7 +137,7 @@ from orbslam_hgcn.synth.sequence import SynthOptions, render_sequence, street_op
 from orbslam_hgcn.vocabulary import load_vocabulary  # noqa: E402
 from orbslam_hgcn.vocabulary.loading import SHIPPED  # noqa: E402
 from orbslam_hgcn.vocabulary.track_network import window_words  # noqa: E402
-from orbslam_hgcn.vocabulary.training.tracks import build_tracks  # noqa: E402
+from orbslam_hgcn.vocabulary.training.tracks import build_tracks, match_pair  # noqa: E402
 
 METRICS = ("AP", "recall@1")
 TEST_SEEDS = list(range(10, 30))
@@ -626,6 +646,70 @@ def kitti_keyframes(cache_dir: Path, args, extractor: ORBExtractor) -> Keyframes
                       make, extractor, args, frames=frames)
 
 
+# The photos family (settings fixed before its first run; see the module docstring).
+PHOTO_SOURCES = ("camvid",)  # held-out sources whose consecutive images see the same street
+PHOTO_UNIT = 24  # images per unit, about: a source's held-out run is cut into round(n / 24) blocks
+PHOTO_MIN_INLIERS = 40  # a true pair: at least this many fundamental-matrix RANSAC inliers (match_pair)
+
+
+def photo_units(folder: Path) -> list[tuple[str, list[Path]]]:
+    """The units of ``--family photos``: per source of :data:`PHOTO_SOURCES` its held-out
+    images (:func:`~orbslam_hgcn.vocabulary.training.photos.photo_files`, never a training
+    image) in order, cut into ``round(n / PHOTO_UNIT)`` blocks of consecutive images as near
+    equal as can be; each (name, files), the name ``SOURCE_FIRST-LAST`` by file index."""
+    from orbslam_hgcn.vocabulary.training.photos import photo_files
+
+    held = photo_files(folder, "heldout")
+    missing = [s for s in PHOTO_SOURCES if s not in held]
+    if missing:
+        raise SystemExit(f"bench_track_words: {folder}: no held-out {', '.join(missing)} images")
+    out = []
+    for source in PHOTO_SOURCES:
+        files = held[source]
+        for block in np.array_split(np.arange(len(files)), max(1, round(len(files) / PHOTO_UNIT))):
+            first, last = (files[i].stem.rsplit("_", 1)[1] for i in (block[0], block[-1]))
+            out.append((f"{source}_{first}-{last}", [files[i] for i in block]))
+    return out
+
+
+def photo_inliers(desc: list[np.ndarray], uv: list[np.ndarray]) -> np.ndarray:
+    """(K, K) int: verified matches (:func:`match_pair`, fundamental-matrix RANSAC inliers)
+    of every pair of images, the older image first; symmetric, 0 on the diagonal."""
+    n = np.zeros((len(desc), len(desc)), np.int64)
+    for j in range(len(desc)):
+        for i in range(j):
+            n[i, j] = n[j, i] = len(match_pair(desc[i], desc[j], uv[i], uv[j])[0])
+    return n
+
+
+def photo_keyframes(cache_dir: Path, unit: int, args, extractor: ORBExtractor) -> Keyframes:
+    """Unit ``unit`` of :func:`photo_units` (its images the keyframes, in order, one frame
+    apart): ORB features, tracks between consecutive images and the pairs' inlier counts
+    kept in the cache; loop truth: at least ``--min-inliers`` inliers; no depth, no pose."""
+    name, files = photo_units(args.photo_dir)[unit]
+    key = hashlib.sha1(f"{FEATURE_CACHE_VERSION} {extractor.config!r} {[f.name for f in files]}".encode()).hexdigest()[:12]
+    cached = cache_dir / "photos" / f"{name}_{key}.npz"
+    if cached.exists():
+        with np.load(cached) as z:
+            cut = np.cumsum(z["sizes"])[:-1]
+            desc, uv, tid, inliers = np.split(z["desc"], cut), np.split(z["uv"], cut), z["tracks"], z["inliers"]
+    else:
+        from orbslam_hgcn.datasets.base import read_image
+
+        kps = [extractor.extract(read_image(f)) for f in files]
+        desc, uv = [k.desc for k in kps], [np.asarray(k.uv, np.float32) for k in kps]
+        tid = build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
+        inliers = photo_inliers(desc, uv)
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(cached, sizes=np.array([len(d) for d in desc]), desc=np.concatenate(desc), uv=np.concatenate(uv),
+                 tracks=tid, inliers=inliers)
+    tracks = np.split(tid, np.cumsum([len(d) for d in desc])[:-1])
+    gt = inliers >= args.min_inliers
+    np.fill_diagonal(gt, False)
+    return Keyframes(name, np.arange(len(desc)) * args.kf_every, desc, uv, tracks, max(1, args.min_gap // args.kf_every),
+                     gt, np.zeros((len(desc), 3)), [np.full((len(d), 3), np.nan) for d in desc])
+
+
 def run_sequence(kfs: Keyframes, vocabs: dict[int, dict], arms: dict[int, list[str]], args) -> dict:
     pairs = same_points(kfs, args.min_gap, args.point_tol)
     out: dict = {"keyframes": len(kfs.frames), "same_point_pairs": int(sum(len(a) for _, _, a, _ in pairs)),
@@ -680,11 +764,15 @@ FAMILIES: dict[str, dict] = {
     "replay": {"seeds": list(range(10, 16)), "fps": 10.0, "kf_every": 3, "min_gap": 100, "dist": 0.5, "angle": 30.0},
     "kitti": {"seeds": [0], "fps": 10.0, "kf_every": 3, "min_gap": 30, "dist": 4.0, "angle": 30.0},
     "map": {"seeds": [], "fps": 10.0, "kf_every": 1, "min_gap": 100, "dist": 0.5, "angle": 30.0},
+    # an image is a frame; the units are photo_units' blocks; truth by inliers, not by pose
+    "photos": {"seeds": [], "fps": 1.0, "kf_every": 1, "min_gap": 2, "dist": None, "angle": None},
 }
 SETTINGS = ("fps", "kf_every", "min_gap", "dist", "angle")
 FAMILY_TITLE = {"office": "rendered two-lap offices", "street": "rendered street drives, driven twice",
                 "replay": "hard fr3 replays (the real path round a desk, back to its start)",
-                "map": "saved ORB-tree SLAM maps (the map's keyframes; tracks from its map points)"}
+                "map": "saved ORB-tree SLAM maps (the map's keyframes; tracks from its map points)",
+                "photos": "runs of held-out real CamVid street photos (no vocabulary trained on them; truth: "
+                          f"at least {PHOTO_MIN_INLIERS} fundamental-matrix inliers)"}
 FP_PRECISION = 0.9  # the KITTI check's threshold: the score that gives this precision on the offices
 
 
@@ -703,6 +791,8 @@ def units(args) -> list[tuple[str, int]]:
     """The sequences of a run as (family, seed): ``kitti`` adds its calibration offices."""
     if args.family == "map":
         return [("map", i) for i in range(len(args.maps))]
+    if args.family == "photos":
+        return [("photos", i) for i in (args.scene_seeds or range(len(photo_units(args.photo_dir))))]
     out = [(args.family, seed) for seed in (args.scene_seeds or FAMILIES[args.family]["seeds"])]
     if args.family == "kitti":
         out = out[:1] + [("office", seed) for seed in args.calib_seeds]
@@ -716,6 +806,8 @@ def keyframes_of(family: str, seed: int, args, extractor: ORBExtractor) -> Keyfr
     if family == "map":
         map_file, seq_dir = args.maps[seed]
         return map_keyframes(map_file, seq_dir, a)
+    if family == "photos":
+        return photo_keyframes(args.cache_dir, seed, a, extractor)
     return {"office": office_keyframes, "street": street_keyframes, "replay": replay_keyframes}[family](
         args.cache_dir, seed, a, extractor)
 
@@ -790,14 +882,21 @@ def _sequence(unit: tuple[str, int]) -> tuple[str, dict]:
 
 
 def _plain(value):
-    """A setting as JSON holds it: paths as strings, also inside the (map, sequence) pairs of --maps."""
+    """A value as JSON holds it: paths as strings (also inside the (map, sequence) pairs of --maps), NaN as null."""
     if isinstance(value, Path):
         return str(value)
     if isinstance(value, (list, tuple)):
         return [_plain(v) for v in value]
     if isinstance(value, dict):
         return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, float) and not np.isfinite(value):
+        return None  # a figure that cannot be computed (no depth: no repeatability) is null, not NaN
     return value
+
+
+def _fmt(x: float) -> str:
+    """A figure for the console: n/a where it cannot be computed (NaN: no depth, no same-point pairs)."""
+    return f"{x:.3f}" if np.isfinite(x) else "n/a"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -805,10 +904,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache-dir", type=Path, default=Path("/tmp/orbslam_hgcn_bench"))
     ap.add_argument("--family", choices=list(FAMILIES), default="office",
                     help="sequences: rendered two-lap offices (default), street drives driven twice, hard fr3 "
-                         "replays, or the real KITTI 00 stretch (a false-positive check)")
+                         "replays, the real KITTI 00 stretch (a false-positive check), saved maps, or runs of "
+                         "held-out real photos")
     ap.add_argument("--scene-seeds", type=int, nargs="+", default=None,
                     help="scene seeds (default: the family's: offices 10..29, validation used 0 1 2; streets "
-                         "10..17; replays 10..15)")
+                         "10..17; replays 10..15); photos: unit numbers (default all)")
     ap.add_argument("--calib-seeds", type=int, nargs="+", default=[0, 1, 2],
                     help="kitti: the office seeds whose detections set each arm's threshold")
     ap.add_argument("--sizes", type=int, nargs="+", choices=(8000, 1000), default=[8000, 1000])
@@ -825,6 +925,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--street-s", type=float, default=30.0, help="street: seconds of each pass")
     ap.add_argument("--replay-s", type=float, default=None, help="replay: its first this many seconds (default all)")
     ap.add_argument("--kitti-dir", type=Path, default=KITTI_DIR)
+    ap.add_argument("--photo-dir", type=Path, default=None,
+                    help="photos: the real photo folder (default shared/data/real_photos beside the project)")
+    ap.add_argument("--min-inliers", type=int, default=PHOTO_MIN_INLIERS,
+                    help="photos: a true pair has at least this many fundamental-matrix RANSAC inliers")
     ap.add_argument("--maps", nargs="+", default=[], metavar="MAP.npz=SEQ_DIR",
                     help="map: maps saved by 'orbslam-hgcn run --vocab orb --save-map', each with its sequence")
     ap.add_argument("--point-tol", type=float, default=None,
@@ -842,6 +946,10 @@ def main(argv: list[str] | None = None) -> int:
         if not args.maps or any("=" not in m for m in args.maps):
             ap.error("--family map needs --maps MAP.npz=SEQ_DIR ...")
         args.maps = [tuple(Path(x) for x in m.split("=", 1)) for m in args.maps]
+    if args.photo_dir is None:
+        from orbslam_hgcn.vocabulary.training.photos import default_photo_folder
+
+        args.photo_dir = default_photo_folder()
     if args.point_tol is None:
         args.point_tol = 0.05 if args.family == "street" else 0.01
     load_start = os.getloadavg()[0]
@@ -859,8 +967,9 @@ def main(argv: list[str] | None = None) -> int:
     with multiprocessing.get_context("spawn").Pool(args.jobs, _init_worker, (args,)) as pool:
         for name, r in pool.imap(_sequence, todo):
             per_seq[name] = r
+            pairs = "no depth" if args.family == "photos" else f"{r['same_point_pairs']} same-point pairs"
             print(f"{name}: {r['keyframes']} keyframes, {100 * r['features_with_track']:.0f}% of features with a "
-                  f"causal track, {r['same_point_pairs']} same-point pairs, "
+                  f"causal track, {pairs}, "
                   f"{r[f'{args.sizes[0]} {arms[args.sizes[0]][0]}']['with_loop']} queries with a loop", flush=True)
             for size, size_arms in arms.items():
                 print(f"  {size:5d} " + "  ".join(f"{a} {r[f'{size} {a}']['AP']:.3f}/{r[f'{size} {a}']['recall@1']:.3f}"
@@ -879,8 +988,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"  max score {c['max_score']:.4f} ({c['max_over_threshold']:.2f} x threshold)")
         print(f"({time.perf_counter() - t0:.0f} s)")
         if args.json is not None:
-            args.json.write_text(json.dumps({"settings": settings, "sequences": per_seq, "false_positive_check": check},
-                                            indent=1))
+            args.json.write_text(json.dumps(_plain({"settings": settings, "sequences": per_seq,
+                                                    "false_positive_check": check}), indent=1))
         if args.record:
             record_kitti(args.record, check, len(per_seq) - 1, load_start)
         return 0
@@ -889,15 +998,15 @@ def main(argv: list[str] | None = None) -> int:
           f"repeatability, effective words (exp entropy)")
     for key, m in means.items():
         print(f"  {key:10s} AP {m['AP']:.3f}  R@1 {m['recall@1']:.3f}  R@100P {m['recall@P100']:.3f}  "
-              f"repeat {m['repeatability']:.3f}  eff. words {m['effective_words']:.0f}")
+              f"repeat {_fmt(m['repeatability'])}  eff. words {m['effective_words']:.0f}")
     print("\npaired contrasts over sequences: mean difference [bootstrap 95% CI], wins/losses, Wilcoxon p, Holm p")
     for key, c in table.items():
         print(f"  {key:22s} {c['mean']:+.4f} [{c['ci95'][0]:+.4f}, {c['ci95'][1]:+.4f}]  {c['wins']}/{c['losses']}  "
               f"p {c['wilcoxon_p']:.4f}  Holm {c['holm_p']:.4f}")
     print(f"({time.perf_counter() - t0:.0f} s)")
     if args.json is not None:
-        args.json.write_text(json.dumps({"settings": settings, "sequences": per_seq, "means": means,
-                                         "contrasts": table}, indent=1))
+        args.json.write_text(json.dumps(_plain({"settings": settings, "sequences": per_seq, "means": means,
+                                                "contrasts": table}), indent=1))
     if args.record:
         record_figures(args.record, means, table, len(per_seq), load_start, args.family)
     return 0

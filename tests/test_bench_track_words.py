@@ -319,3 +319,44 @@ def test_settings_of_the_map_family_write_as_json(tw):
     back = json.loads(json.dumps({k: tw._plain(v) for k, v in settings.items()}))
     assert back["maps"] == [["/m/office0.npz", "/d/office0"], ["/m/office1.npz", "/d/office1"]]
     assert back["cache_dir"] == "/c" and back["sizes"] == [8000, 1000]
+
+
+def _photo_folder():
+    from orbslam_hgcn.vocabulary.training.photos import default_photo_folder
+
+    folder = default_photo_folder()
+    if not (folder / "camvid_0620.jpg").is_file():
+        pytest.skip(f"{folder}: no real photos")
+    return folder
+
+
+def test_photo_units_are_held_out_images_only(tw):
+    from orbslam_hgcn.vocabulary.training.photos import HOLDOUT, photo_files
+
+    folder = _photo_folder()
+    units = tw.photo_units(folder)
+    held = {f for fs in photo_files(folder, "heldout").values() for f in fs}
+    train = {f for fs in photo_files(folder, "train").values() for f in fs}
+    used = [f for _, files in units for f in files]
+    assert len(used) == len(set(used)) and set(used) <= held and not set(used) & train
+    # every held-out CamVid image, in order, in blocks of about PHOTO_UNIT consecutive images
+    camvid = photo_files(folder, "heldout")["camvid"]
+    assert used == camvid and int(camvid[0].stem.split("_")[1]) == HOLDOUT["camvid"]
+    assert len(units) == round(len(camvid) / tw.PHOTO_UNIT)
+    assert all(abs(len(files) - tw.PHOTO_UNIT) <= 1 for _, files in units)
+    assert units[0][0] == f"camvid_{HOLDOUT['camvid']:04d}-{units[0][1][-1].stem.split('_')[1]}"
+
+
+def test_photo_truth_is_geometric_verification(tw):
+    from orbslam_hgcn.datasets.base import read_image
+    from orbslam_hgcn.features.orb import ORBExtractor
+
+    folder = _photo_folder()
+    ex = ORBExtractor()
+    # two consecutive held-out CamVid frames (the same street) and an unrelated ImageNet photo
+    kps = [ex.extract(read_image(folder / f)) for f in ("camvid_0620.jpg", "camvid_0621.jpg",
+                                                        "imagenet_sample_0000.jpg")]
+    n = tw.photo_inliers([k.desc for k in kps], [np.asarray(k.uv, np.float32) for k in kps])
+    assert (n == n.T).all() and (np.diag(n) == 0).all()
+    assert n[0, 1] >= 4 * tw.PHOTO_MIN_INLIERS  # 456 inliers: the same place, far above the bar
+    assert n[0, 2] < tw.PHOTO_MIN_INLIERS / 2 and n[1, 2] < tw.PHOTO_MIN_INLIERS / 2  # 8: chance
