@@ -14,10 +14,11 @@ image): ``orb`` is the ORB tree at the shape of ORB-SLAM's ORBvoc (k = 10, L = 6
 ``orb10k`` the tree at the flat vocabularies' size (k = 10, L = 4), ``kmeans`` the HGCN
 vocabulary's ablation (its PCA and seed k-means at the same word count), ``hgcn`` the HGCN
 vocabulary, whose seed labels are shared along feature tracks matched between consecutive
-images of each photo source (the CamVid drives and the head-worn walks are video frames). The
-run is reproducible: the same arguments give the same files (up to the creation date).
+images of each photo source (the CamVid drives and the head-worn walks are video frames);
+``hgcn_graph`` and ``hgcn_graph_mean`` add the track network (attention, mean) to the new
+k-means words (tools/train_graph_vocab.py). The run is reproducible: the same arguments give the same files (up to the creation date).
 
-    python tools/train_default_vocabs.py                 # all four
+    python tools/train_default_vocabs.py                 # all six shipped files
     python tools/train_default_vocabs.py --kinds orb     # only the ORB tree
     python tools/train_default_vocabs.py --out-dir DIR   # write elsewhere
 
@@ -46,6 +47,7 @@ log = logging.getLogger("train_default_vocabs")
 
 FIRST_SCENE_SEED = 1001
 ORB_LEVELS = 6  # ORB-SLAM's ORBvoc.txt: k = 10, L = 6
+KINDS = ("orb", "orb10k", "kmeans", "hgcn", "hgcn_graph", "hgcn_graph_mean")  # in build order
 
 
 def render_training_scenes(work: Path, n_scenes: int, frames: int, progress: bool) -> list[Path]:
@@ -96,8 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--photos", type=Path, default=photos.default_photo_folder(),
                     help="folder of real photos named <source>_<NNNN>.jpg (default: shared/data/real_photos)")
     ap.add_argument("--features", type=int, default=1000, help="ORB features per image")
-    ap.add_argument("--kinds", nargs="+", choices=("orb", "hgcn", "kmeans", "orb10k"),
-                    default=["orb", "orb10k", "kmeans", "hgcn"])
+    ap.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS))
     ap.add_argument("--hgcn-words", type=int, default=HgcnTrainConfig.n_words, help="hgcn and kmeans words")
     ap.add_argument("--orb-levels", type=int, default=ORB_LEVELS)
     ap.add_argument("--no-tracks", action="store_true",
@@ -112,7 +113,18 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--photos {args.photos}: no such folder")
     data, trained_on, tag = training_data(args.work_dir, args.photos, args.features, args.with_renders)
     log.info("%d descriptors from %d images", len(data.desc), len(data.groups))
-    for kind in args.kinds:
+    for kind in [k for k in KINDS if k in args.kinds]:
+        if kind in ("hgcn_graph", "hgcn_graph_mean"):
+            import train_graph_vocab  # the track network over the k-means words just written
+
+            out = SHIPPED[kind] if args.out_dir is None else args.out_dir / SHIPPED[kind].name
+            words = SHIPPED["kmeans"] if args.out_dir is None else args.out_dir / SHIPPED["kmeans"].name
+            graph_args = ["--work-dir", str(args.work_dir), "--photos", str(args.photos), "--features",
+                          str(args.features), "--words", str(words), "--out", str(out),
+                          "--aggregation", "attention" if kind == "hgcn_graph" else "mean"]
+            if train_graph_vocab.main(graph_args) != 0:
+                return 1
+            continue
         out = SHIPPED[kind] if args.out_dir is None else args.out_dir / SHIPPED[kind].name
         t = time.perf_counter()
         if kind in ("orb", "orb10k"):
