@@ -81,3 +81,30 @@ def test_run_names_config_as_the_cameras_source(tmp_path, caplog, monkeypatch):
     line = _settings_logged(folder, tmp_path / "out", caplog, monkeypatch, config="tum_fr2")
     assert line.startswith("camera from ") and "tum_fr2.yaml; stage settings of tum_fr2 (its camera" in line
     assert line.endswith("tum_fr2.yaml")  # then --config
+
+
+_COLD_CACHE = textwrap.dedent("""
+    import logging, sys
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s", stream=sys.stdout)
+    import orbslam_hgcn.runtime.system as system
+    from orbslam_hgcn.runtime import kernels
+    for name in kernels.RUN_KERNEL_MODULES:  # the compile step stubbed: the message is the test
+        __import__(name, fromlist=["warm_up"]).warm_up = lambda: 0.0
+    system.warm_up_kernels()
+    kernels.cold_modules = lambda *a: []  # as when every kernel is cached
+    system.warm_up_kernels()
+""")
+
+
+def test_the_first_run_says_it_compiles_the_kernels_before_it_does(tmp_path):
+    """With numba's cache empty (NUMBA_CACHE_DIR), warming the kernels first logs that the
+    first run after an install compiles them once and later runs load them; with every
+    kernel cached it says nothing."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    r = subprocess.run([sys.executable, "-c", _COLD_CACHE], env=env, capture_output=True, text=True, timeout=120,
+                       cwd=REPO)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    lines = [ln for ln in r.stdout.splitlines() if "compiling the numba kernels" in ln]
+    assert len(lines) == 1, r.stdout
+    assert "first run after an install compiles them once" in lines[0] and "later runs load them" in lines[0]
+    assert "pose_only" in lines[0] and "schur_ba" in lines[0] and "fast" in lines[0]

@@ -118,7 +118,11 @@ def warm_up_kernels() -> float:
     """Compile (first run after an install) or load from numba's cache the compiled kernels
     of tracking and local mapping (pose-only optimisation, projection search and fusion,
     triangulation search and checks, map point refresh) and the readers' PNG rows, each
-    module warming its own; returns the seconds it took."""
+    module warming its own; returns the seconds it took. When numba's cache lacks a run's
+    kernels (these, local BA's, extraction's) it says first that they are compiled now, once."""
+    from orbslam_hgcn.runtime.kernels import announce_compile
+
+    announce_compile()
     t0 = time.perf_counter()
     for module in (pose_only, projection_search, matching, triangulation, mappoint, png):
         module.warm_up()

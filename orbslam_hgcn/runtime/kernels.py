@@ -1,0 +1,107 @@
+"""The compiled (numba) kernels of a run: whether they are in numba's cache, and warming
+them all at once.
+
+The first run after an install compiles them (40 to 60 s on a 2-core machine: tracking
+and local mapping's kernels, local BA's, ORB extraction's); later runs load them from the
+cache in about a second (see :mod:`orbslam_hgcn.compiled`). A run says so before it
+compiles (:func:`announce_compile`). ``python -m orbslam_hgcn.runtime.kernels`` (run by
+``tools/setup.sh``) compiles every one that is not cached, and returns at once when all are.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+import time
+
+log = logging.getLogger(__name__)
+
+# The modules whose kernels a run compiles: tracking and local mapping's (warm_up_kernels),
+# local BA's (in the solver), ORB extraction's (in the extractor or its process).
+RUN_KERNEL_MODULES = (
+    "orbslam_hgcn.backend.pose_only",
+    "orbslam_hgcn.match.projection_search",
+    "orbslam_hgcn.match.matching",
+    "orbslam_hgcn.geometry.triangulation",
+    "orbslam_hgcn.map.mappoint",
+    "orbslam_hgcn.datasets.png",
+    "orbslam_hgcn.backend.schur_ba",
+    "orbslam_hgcn.features.fast",
+    "orbslam_hgcn.features.distribute",
+    "orbslam_hgcn.features.rbrief",
+)
+FIRST_COMPILE_S = "40 to 60"  # seconds, on a 2-core machine
+
+
+def _cached(dispatcher) -> bool:
+    """Whether numba's cache holds a compiled version of ``dispatcher`` for its source as
+    it is now (numba's own index check; True when that cannot be told)."""
+    cache = getattr(dispatcher, "_cache", None)
+    cache_file = getattr(cache, "_cache_file", None)
+    if cache_file is None or not hasattr(cache_file, "_load_index"):
+        return True
+    try:
+        return bool(cache_file._load_index())
+    except Exception:  # noqa: BLE001 - an unreadable index: numba compiles again
+        return False
+
+
+def cold_modules(modules: tuple[str, ...] = RUN_KERNEL_MODULES) -> list[str]:
+    """The modules of ``modules`` with a kernel that numba's cache does not hold (they are
+    compiled on first use); cheap: reads the cache's index files."""
+    from numba.core.registry import CPUDispatcher
+
+    cold = []
+    for name in modules:
+        module = importlib.import_module(name)
+        kernels = [v for v in vars(module).values() if isinstance(v, CPUDispatcher) and v.__module__ == name]
+        if not all(_cached(k) for k in kernels):
+            cold.append(name)
+    return cold
+
+
+def announce_compile(modules: tuple[str, ...] = RUN_KERNEL_MODULES) -> list[str]:
+    """Log, before compiling, that the kernels not in the cache are compiled now, once;
+    returns those modules (none: nothing logged)."""
+    cold = cold_modules(modules)
+    if cold:
+        log.info(
+            "compiling the numba kernels of %d modules (%s): the first run after an install compiles them "
+            "once, %s s in all on a 2-core machine; later runs load them from the cache in about a "
+            "second (tools/setup.sh compiles them ahead)",
+            len(cold), ", ".join(n.rsplit(".", 1)[-1] for n in cold), FIRST_COMPILE_S,
+        )  # fmt: skip
+    return cold
+
+
+def warm_all() -> float:
+    """Compile (or load) every kernel of a run: tracking and local mapping's, local BA's
+    and ORB extraction's; returns the seconds it took."""
+    from orbslam_hgcn.backend import schur_ba
+    from orbslam_hgcn.features.orb import ORBExtractor
+    from orbslam_hgcn.geometry.camera import PinholeCamera
+    from orbslam_hgcn.runtime.extraction import warm_up_extractors
+    from orbslam_hgcn.runtime.system import warm_up_kernels
+
+    t0 = time.perf_counter()
+    warm_up_kernels()
+    schur_ba.warm_up()
+    camera = PinholeCamera(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
+    warm_up_extractors([ORBExtractor()], camera)
+    return time.perf_counter() - t0
+
+
+def main() -> int:
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    logging.getLogger("orbslam_hgcn").setLevel(logging.INFO)
+    if not cold_modules():
+        print("compiled kernels: all in numba's cache")
+        return 0
+    seconds = warm_all()
+    print(f"compiled kernels: compiled in {seconds:.0f} s and cached for later runs")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
