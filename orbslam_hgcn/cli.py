@@ -149,16 +149,25 @@ def _add_lcd(sub: argparse._SubParsersAction) -> None:
         help="compare loop-closure detectors (BoW, HGCN-BoW, FAB-MAP 2.0, HGCN-FABMAP)",
         description="Train each detector on --train, run it over --test, score its confusion "
         "matrix against the ground-truth loop matrix (recall, accuracy = precision, recall at "
-        "100%% precision, AUC); write confusion matrices, PR curves and lcd_results.json. "
+        "100% precision, AUC); write confusion matrices, PR curves and lcd_results.json. "
         "The memory each detector needs (its (n, n) matrices over the test images; FAB-MAP: its "
         "per-word tables and Chow-Liu tree, linear in the vocabulary) is checked against the memory "
         "available (or $ORBSLAM_HGCN_MEMORY_LIMIT_MB) before it runs; when it does not fit, the command stops "
         "with status 2: use a smaller vocabulary, --levels, or fewer images. By default a video-rate "
         "sequence is sampled to about one image per distinct view (0.25 m or 15 deg of ground-truth "
-        "camera motion, else one image per 0.5 s), a query is compared only with images outside an "
-        "exclusion window (the ground truth's smallest loop separation, else 10 s), and the "
-        "recall/accuracy thresholds are fitted on the training sequence (highest recall at 100%% "
-        "precision there; it needs TRAIN/loop_gt.npy or --train-gt).",
+        "camera motion, else one image per 0.5 s). When its loop ground truth covers every frame and "
+        "that leaves fewer than 20 images that revisit an earlier one outside the exclusion window, or "
+        "fewer than 80 images, the spacing shrinks step by step (to 84% each, at last every frame) "
+        "until both are met; when even the densest cannot give 20, a warning says so. images_test.txt "
+        "and images_train.txt name the images used. A query is compared only with images outside an "
+        "exclusion window, chosen on the images as used: the ground truth's smallest loop separation, "
+        "else 10 s; the loops scored are the ground truth's revisits (true pairs joined to the "
+        "diagonal are one continuous visit, not loops, whatever the spacing). The recall/accuracy "
+        "thresholds are fitted on the training sequence (highest recall at 100% precision there; it "
+        "needs TRAIN/loop_gt.npy or --train-gt). AUC and recall at 100% precision are printed and "
+        "written with 95% confidence intervals: percentile bootstrap over the test queries (1000 "
+        "resamples with replacement, fixed seed), so that a figure from a few true loops reads as "
+        "uncertain as it is.",
     )
     p.add_argument("--method", default="all",
                    help="bow, hgcn-bow, fabmap2, hgcn-fabmap, a comma list, or all (default)")
@@ -187,8 +196,10 @@ def _add_lcd(sub: argparse._SubParsersAction) -> None:
                    help="FAB-MAP new-place likelihood (default from config: mean_field)")
     window = p.add_mutually_exclusive_group()
     window.add_argument("--min-gap", type=int, default=None,
-                        help="compare a query only with images at least this many (sampled) images earlier "
-                        "(default: the ground truth's smallest loop separation, else --window-s 10)")
+                        help="compare a query only with images at least this many images earlier, counted in "
+                        "the sampled images (one per distinct view by default; when they are made denser for "
+                        "too few revisits, the gap is scaled up by as much) (default: the ground truth's "
+                        "smallest loop separation, else --window-s 10)")
     window.add_argument("--window-s", type=float, default=None,
                         help="compare a query only with images at least this many seconds earlier")
     p.add_argument("--threshold", type=float, default=None,
@@ -199,8 +210,8 @@ def _add_lcd(sub: argparse._SubParsersAction) -> None:
                    "training sequence, else 0.3)")
     sampling = p.add_mutually_exclusive_group()
     sampling.add_argument("--stride", type=int, default=None,
-                          help="use every stride-th image of both sequences (default: sampled by camera motion "
-                          "or time, see above)")
+                          help="use every stride-th image of both sequences, never made denser (default: "
+                          "sampled by camera motion or time, denser for too few revisits, see above)")
     sampling.add_argument("--every-s", type=float, default=None,
                           help="use one image per this many seconds of both sequences")
     p.add_argument("--limit", type=int, default=None, help="use at most this many images of each")

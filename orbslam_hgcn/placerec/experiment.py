@@ -13,19 +13,20 @@ from pathlib import Path
 import numpy as np
 
 
-def ground_truth_for(gt_path: Path, source, name: str = "test") -> tuple[np.ndarray, np.ndarray]:
+def ground_truth_for(gt_path: Path, source, name: str = "test", gt: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The (n, n) loop matrix of the selected images, and its revisit pairs (n, n).
 
     A matrix over every image of the sequence is cut down to the selected ones, its revisits
     (:func:`~orbslam_hgcn.placerec.window.revisit_pairs`) found on the whole matrix first; a
     matrix over the selected images is taken as it is; any other size is a DatasetError
-    naming the file.
+    naming the file. gt: the matrix already loaded from ``gt_path``.
     """
     from orbslam_hgcn.errors import DatasetError
     from orbslam_hgcn.placerec.data import load_ground_truth
     from orbslam_hgcn.placerec.window import revisit_pairs
 
-    gt = load_ground_truth(gt_path)
+    if gt is None:
+        gt = load_ground_truth(gt_path)
     n = len(source)
     idx = source.indices
     if gt.shape[0] == source.total:
@@ -56,27 +57,52 @@ def prepare_sequence(
     path: str | Path, gt_path: Path | None, *, stride: int | None, every_s: float | None, limit: int | None,
     min_gap: int | None, window_s: float | None, name: str = "test",
 ) -> Prepared:
-    """Open a sequence, choose its images (:func:`~orbslam_hgcn.placerec.window.sample_indices`),
+    """Open a sequence, choose its images (:func:`~orbslam_hgcn.placerec.window.sample_for_loops`),
     load its ground truth over them and choose its exclusion window.
 
     The loops scored are the ground truth's revisits
     (:func:`~orbslam_hgcn.placerec.window.revisit_pairs`): a pair of images of one continuous
-    visit of a place (joined to the diagonal through true pairs) is no loop closure.
+    visit of a place (joined to the diagonal through true pairs) is no loop closure. A ground
+    truth over every frame is read before the images are chosen, so that a spacing which
+    leaves too few revisits is made denser; the window is then chosen on the images used.
+    When too few images revisit even so, ``sampling.warning`` says so; when the ground truth
+    covers only the images sampled, they are counted and warned about all the same.
     """
-    from orbslam_hgcn.placerec.data import ImageSource
-    from orbslam_hgcn.placerec.window import choose_window, sample_indices
+    from orbslam_hgcn.placerec.data import ImageSource, load_ground_truth
+    from orbslam_hgcn.placerec.window import (
+        MIN_REVISITS,
+        Sampling,
+        choose_window,
+        revisit_pairs,
+        revisiting_images,
+        sample_for_loops,
+    )
 
     whole = ImageSource(path)
     poses = whole.all_poses if stride is None and every_s is None else None
-    sampling = sample_indices(whole.total, whole.all_timestamps, poses, stride=stride, every_s=every_s)
+    gt_all = load_ground_truth(gt_path) if gt_path is not None else None
+    revisits_all = revisit_pairs(gt_all) if gt_all is not None and gt_all.shape[0] == whole.total else None
+    sampling = sample_for_loops(whole.total, whole.all_timestamps, poses, revisits_all, stride=stride,
+                                every_s=every_s, limit=limit, min_gap=min_gap, window_s=window_s, name=name)
     src = whole.select(sampling.indices, limit)
     revisits, visit_pairs = None, 0
     if gt_path is not None:
-        gt, revisits = ground_truth_for(gt_path, src, name)
+        gt, revisits = ground_truth_for(gt_path, src, name, gt_all)
         visit_pairs = int(np.count_nonzero(np.tril(gt, -1) & ~revisits))
     window = None
     if revisits is not None or name == "test":  # a training sequence needs one only to fit thresholds
-        window = choose_window(revisits, src.timestamps, min_gap=min_gap, window_s=window_s)
+        gap = sampling.min_gap if sampling.min_gap is not None and min_gap is not None else min_gap
+        window = choose_window(revisits, src.timestamps, min_gap=gap, window_s=window_s, given_gap=min_gap)
+    if revisits is not None and sampling.revisiting is None and revisits.any():
+        # a ground truth over the sampled images only: nothing to densify with
+        n_rev = revisiting_images(revisits, window.gap)
+        warning = None
+        if n_rev < MIN_REVISITS:
+            warning = (f"{name}: only {n_rev} images revisit an earlier one outside the exclusion window, fewer "
+                       f"than the {MIN_REVISITS} that measure loop closure, and the ground truth covers only the "
+                       f"images sampled, so no denser sampling can be chosen: recall at 100% precision and AUC "
+                       f"rest on {n_rev} queries; read their 95% confidence intervals")
+        sampling = Sampling(sampling.indices, sampling.how, n_rev, warning)
     return Prepared(src, sampling, revisits, visit_pairs, window)
 
 

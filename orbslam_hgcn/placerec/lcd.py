@@ -16,10 +16,12 @@ model (FAB-MAP). Every method yields an (n, n) matrix over the test images, scor
 :mod:`orbslam_hgcn.placerec.metrics` against the ground-truth loop matrix.
 
 ``orbslam-hgcn lcd`` (:func:`lcd_command`) chooses by default which images it compares and
-how: about one image per distinct view of each sequence, the ground truth's revisits as the
-loops, an exclusion window from the ground truth or the timestamps
-(:mod:`orbslam_hgcn.placerec.window`), and the recall/accuracy threshold of each detector
-fitted on the training sequence (:func:`fit_threshold`).
+how: about one image per distinct view of each sequence (denser when that leaves fewer than
+20 revisiting images or 80 images), the ground truth's revisits as the loops, an exclusion
+window from the ground truth or the timestamps (:mod:`orbslam_hgcn.placerec.window`), and
+the recall/accuracy threshold of each detector fitted on the training sequence
+(:func:`fit_threshold`). AUC and recall at 100% precision come with 95% bootstrap
+confidence intervals over the test queries (:func:`~orbslam_hgcn.placerec.metrics.bootstrap_ci`).
 
 Before any detector runs, the memory each one needs is estimated (FAB-MAP's per-word tables
 and Chow-Liu tree, the (n, n) matrices) and checked against the memory available (:mod:`orbslam_hgcn.placerec.memory`); one that does not fit
@@ -212,7 +214,8 @@ def fit_threshold(
     values, floor = _decision_scores(matches)
     thr = full_precision_threshold(values, train_gt, matches.min_gap, floor=floor)
     summary, _ = score_detector(METHOD_LABEL[method], matches.scores, train_gt, thr, matches.min_gap,
-                                log_scores=matches.log_scores, threshold_is_log=matches.log_scores is not None)
+                                log_scores=matches.log_scores, threshold_is_log=matches.log_scores is not None,
+                                resamples=0)
     return thr, summary
 
 
@@ -280,14 +283,20 @@ def evaluate_methods(
 
 
 def format_table(results: list[LcdResult]) -> str:
-    """The comparison as a text table (the paper's columns plus recall@100%P and AUC)."""
+    """The comparison as a text table (the paper's columns plus recall@100%P and AUC, each
+    with its 95% bootstrap confidence interval)."""
 
     def pct(x: float) -> str:
         return "   n/a" if x != x else f"{100 * x:6.1f}"
 
+    def ci(iv: tuple[float, float] | None) -> str:
+        if iv is None or iv[0] != iv[0]:
+            return f"{'':>13}"
+        return f"[{100 * iv[0]:5.1f},{100 * iv[1]:5.1f}]"
+
     lines = [
         f"{'method':<13} {'thresh':>8} {'from':<8} {'recall%':>7} {'accuracy%':>9} {'TP':>5} {'FP':>5} {'FN':>5} "
-        f"{'R@100P%':>7} {'AUC%':>6}"
+        f"{'R@100P%':>7} {'[95% CI]':<13} {'AUC%':>6} {'[95% CI]':<13}"
     ]
     short = {"fitted on training": "training", "given": "given", "fixed": "fixed"}
     for r in results:
@@ -295,10 +304,16 @@ def format_table(results: list[LcdResult]) -> str:
         thr = f"{s.threshold:8.2f}" if 0.01 <= s.threshold or s.threshold == 0 else f"{s.threshold:8.1e}"
         lines.append(
             f"{s.method:<13} {thr} {short.get(r.threshold_from, r.threshold_from):<8} {pct(s.recall):>7} "
-            f"{pct(s.accuracy):>9} {s.tp:5d} {s.fp:5d} {s.fn:5d} {pct(s.recall_at_100p):>7} {pct(s.auc):>6}"
+            f"{pct(s.accuracy):>9} {s.tp:5d} {s.fp:5d} {s.fn:5d} {pct(s.recall_at_100p):>7} "
+            f"{ci(s.recall_at_100p_ci)} {pct(s.auc):>6} {ci(s.auc_ci)}".rstrip()
         )
     n_pos = results[0].score.n_positive if results else 0
+    n_queries = len(results[0].matches.matched) if results else 0
     lines.append(f"({n_pos} test images have a true loop; accuracy = precision TP/(TP+FP))")
+    resamples = max((r.score.ci_resamples for r in results), default=0)
+    if resamples:
+        lines.append(f"([95% CI]: bootstrap over the {n_queries} test queries, {resamples} resamples with "
+                     f"replacement, fixed seed; few true loops make it wide)")
     if any(r.threshold_from == "fitted on training" for r in results):
         fits = ", ".join(f"{r.score.method} {pct(r.train_score.recall).strip()}%" for r in results
                          if r.train_score is not None)
@@ -469,8 +484,9 @@ def lcd_command(
 ) -> LcdRun:
     """``orbslam-hgcn lcd``: files in, comparison table and figures out.
 
-    Both sequences are sampled to about one image per distinct view unless ``stride`` or
-    ``every_s`` say otherwise, and each gets an exclusion window from its ground truth (or
+    Both sequences are sampled to about one image per distinct view, denser where that
+    leaves too few revisits to measure with, unless ``stride`` or ``every_s`` say
+    otherwise, and each gets an exclusion window from its ground truth (or
     ``cfg.min_gap`` images when positive, or ``window_s`` seconds); see
     :mod:`orbslam_hgcn.placerec.window`. Thresholds not given are fitted on the training
     sequence when it has a loop ground truth (``train_gt``, default TRAIN/loop_gt.npy).
@@ -499,11 +515,13 @@ def lcd_command(
         if prep.gt is not None:
             lines.append(f"{name}: {int(prep.gt.any(axis=1).sum())} images revisit an earlier one "
                          f"({prep.visit_pairs} true pairs within one continuous visit are not loops)")
+            if prep.sampling.revisiting is not None and prep.sampling.revisiting != int(prep.gt.any(axis=1).sum()):
+                lines.append(f"{name}: {prep.sampling.revisiting} of them revisit one outside the exclusion window")
         if prep.window is not None:
             lines.append(f"{name}: exclusion window {prep.window.describe()}")
-        warning = warn_hidden_loops(name, prep)
-        if warning:
-            log.warning("%s", warning)
+        for warning in (prep.sampling.warning, warn_hidden_loops(name, prep)):
+            if warning:
+                log.warning("%s", warning)
     train_gt_mat = train_prep.gt
     if train_gt_mat is not None and not (train_gt_mat & candidate_mask(len(train_gt_mat), train_prep.window.gap)).any():
         train_gt_mat = None  # no loop outside the window: nothing to fit a threshold on
@@ -524,6 +542,8 @@ def lcd_command(
         "stride": stride, "every_s": every_s, "levels": levels,
         "n_train": len(train_prep.source), "n_test": len(test_prep.source),
         "sampling": {"train": train_prep.sampling.how, "test": test_prep.sampling.how},
+        "revisiting": {"train": train_prep.sampling.revisiting, "test": test_prep.sampling.revisiting},
+        "sampling_warnings": [p.sampling.warning for p in (test_prep, train_prep) if p.sampling.warning],
         "window": {name: {"images": p.window.gap, "seconds": p.window.seconds, "source": p.window.source}
                    for name, p in (("train", train_prep), ("test", test_prep)) if p.window is not None},
         "images": {"train": train_prep.source.indices, "test": test_prep.source.indices},

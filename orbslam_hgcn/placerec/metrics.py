@@ -19,6 +19,11 @@ The precision-recall curve sweeps the threshold over every distinct positive bes
 ``auc`` is the area under it as the step-wise average precision
 ``sum_k (R_k - R_{k-1}) P_k`` (R_0 = 0); ``recall_at_100p`` is the largest recall reached
 with no false positive.
+
+Both rest on the few queries with a true loop, so each comes with a 95% confidence interval
+(:func:`bootstrap_ci`): the percentile interval of the figure over ``BOOTSTRAP_RESAMPLES``
+resamples of the query images drawn with replacement (each query keeps its best match and
+whether it has a true loop), from a fixed seed so that a run is reproducible.
 """
 
 from __future__ import annotations
@@ -29,6 +34,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 log = logging.getLogger(__name__)
+
+
+BOOTSTRAP_RESAMPLES = 1000
+BOOTSTRAP_SEED = 0
+CI_LEVEL = 0.95
+_BOOTSTRAP_CHUNK = 2_000_000  # resamples x queries held at once
 
 
 def candidate_mask(n: int, min_gap: int) -> np.ndarray:
@@ -151,6 +162,98 @@ def pr_curve(scores: np.ndarray, gt: np.ndarray, min_gap: int = 1, *, floor: flo
     return PRCurve(thr, precision.astype(np.float64), np.asarray(recall, dtype=np.float64), n_pos)
 
 
+def curve_figures(
+    score: np.ndarray, correct: np.ndarray, positive: np.ndarray, weights: np.ndarray, *, floor: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """AUC and recall at 100% precision (as :class:`PRCurve` has them) of weighted query sets.
+
+    score, correct, positive: (n,) per query, as :func:`decisions` gives them; weights: (B, n)
+    how many times each query counts in each of B sets (a bootstrap resample: counts
+    summing to n; all ones: the queries as they are). Returns ((B,) AUC, (B,) recall at 100%
+    precision), NaN for a set without a query that has a true loop.
+    """
+    w = np.atleast_2d(np.asarray(weights, dtype=np.float64))
+    n_pos = w @ np.asarray(positive, dtype=np.float64)
+    keep = np.isfinite(score) & (score > floor)
+    s = np.asarray(score)[keep]
+    order = np.argsort(-s, kind="stable")
+    s, c = s[order], np.asarray(correct, dtype=bool)[keep][order]
+    wk = w[:, keep][:, order]
+    nan = np.full(len(w), np.nan)
+    if len(s) == 0:
+        zero = np.where(n_pos > 0, 0.0, nan)
+        return zero, zero
+    last = np.flatnonzero(np.r_[s[1:] != s[:-1], True])
+    tp = np.cumsum(wk * c, axis=1)[:, last]
+    fp = np.cumsum(wk * ~c, axis=1)[:, last]
+    precision = tp / np.maximum(tp + fp, 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        recall = tp / n_pos[:, None]
+    dr = np.diff(recall, axis=1, prepend=0.0)
+    auc = np.sum(dr * precision, axis=1)
+    r100 = np.max(np.where(precision >= 1.0, recall, 0.0), axis=1)
+    return np.where(n_pos > 0, auc, nan), np.where(n_pos > 0, r100, nan)
+
+
+@dataclass(frozen=True)
+class BootstrapCI:
+    """95% confidence intervals (low, high) of AUC and recall at 100% precision, from
+    ``resamples`` resamples of the ``queries`` query images (``valid`` of them with a query
+    that has a true loop; the others leave the figures undefined and are not counted)."""
+
+    auc: tuple[float, float]
+    recall_at_100p: tuple[float, float]
+    resamples: int
+    valid: int
+    queries: int
+    level: float = CI_LEVEL
+
+
+def bootstrap_from_decisions(
+    score: np.ndarray, correct: np.ndarray, positive: np.ndarray, *, floor: float = 0.0,
+    resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED, level: float = CI_LEVEL,
+) -> BootstrapCI:
+    """:func:`bootstrap_ci` on the per-query decisions of :func:`decisions`."""
+    n = len(score)
+    rng = np.random.default_rng(seed)
+    aucs, r100s = [], []
+    chunk = max(1, _BOOTSTRAP_CHUNK // max(n, 1))
+    for start in range(0, resamples if n else 0, chunk):
+        b = min(chunk, resamples - start)
+        draw = rng.integers(0, n, size=(b, n))
+        weights = np.bincount((np.arange(b)[:, None] * n + draw).ravel(), minlength=b * n).reshape(b, n)
+        a, r = curve_figures(score, correct, positive, weights, floor=floor)
+        aucs.append(a)
+        r100s.append(r)
+    aucs = np.concatenate(aucs) if aucs else np.zeros(0)
+    r100s = np.concatenate(r100s) if r100s else np.zeros(0)
+    ok = np.isfinite(aucs)
+    q = [50 * (1 - level), 50 * (1 + level)]
+
+    def interval(x: np.ndarray) -> tuple[float, float]:
+        if not ok.any():
+            return (float("nan"), float("nan"))
+        lo, hi = np.percentile(x[ok], q)
+        return (float(lo), float(hi))
+
+    return BootstrapCI(interval(aucs), interval(r100s), int(resamples if n else 0), int(ok.sum()), n, level)
+
+
+def bootstrap_ci(
+    scores: np.ndarray, gt: np.ndarray, min_gap: int = 1, *, floor: float = 0.0,
+    resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED, level: float = CI_LEVEL,
+) -> BootstrapCI:
+    """Percentile bootstrap confidence intervals of AUC and recall at 100% precision.
+
+    The query images (rows of ``scores``) are resampled with replacement ``resamples``
+    times from ``seed``; each resample's curve is :func:`pr_curve`'s over the queries drawn
+    (each keeping its best match, whether that is a true loop, and whether it has one).
+    """
+    score, correct, positive = decisions(scores, gt, min_gap)
+    return bootstrap_from_decisions(score, correct, positive, floor=floor, resamples=resamples, seed=seed,
+                                    level=level)
+
+
 def full_precision_threshold(scores: np.ndarray, gt: np.ndarray, min_gap: int = 1, *, floor: float = 0.0) -> float:
     """The acceptance threshold with the highest recall at 100% precision on ``scores``.
 
@@ -185,6 +288,9 @@ class DetectorScore:
     recall_at_100p: float
     auc: float
     n_positive: int
+    recall_at_100p_ci: tuple[float, float] | None = None  # 95% bootstrap interval over the queries
+    auc_ci: tuple[float, float] | None = None
+    ci_resamples: int = 0
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -199,6 +305,7 @@ def score_detector(
     *,
     log_scores: np.ndarray | None = None,
     threshold_is_log: bool = False,
+    resamples: int = BOOTSTRAP_RESAMPLES,
 ) -> tuple[DetectorScore, PRCurve]:
     """Everything the comparison table and plots need for one detector.
 
@@ -206,7 +313,8 @@ def score_detector(
     posteriors); decisions are then taken on it, so that posteriors too small for float64
     (below about 1e-308) still rank. The curve's thresholds are given as probabilities.
     threshold_is_log: ``threshold`` is a log-probability (with ``log_scores``), as
-    :func:`full_precision_threshold` finds it on them.
+    :func:`full_precision_threshold` finds it on them. resamples: of the bootstrap
+    confidence intervals of AUC and recall at 100% precision (:func:`bootstrap_ci`); 0 for none.
     """
     if log_scores is not None:
         if threshold_is_log:
@@ -217,12 +325,17 @@ def score_detector(
         counts = Counts(float(threshold), counts.tp, counts.fp, counts.fn, counts.tn)
         curve = pr_curve(log_scores, gt, min_gap, floor=-np.inf)
         curve = PRCurve(np.exp(curve.thresholds), curve.precision, curve.recall, curve.n_positive)
+        values, floor = log_scores, -np.inf
     else:
         counts = confusion_counts(scores, gt, threshold, min_gap)
         curve = pr_curve(scores, gt, min_gap)
+        values, floor = scores, 0.0
+    ci = bootstrap_ci(values, gt, min_gap, floor=floor, resamples=resamples) if resamples > 0 else None
     summary = DetectorScore(
         method=method, threshold=float(threshold), recall=counts.recall, accuracy=counts.precision,
         tp=counts.tp, fp=counts.fp, fn=counts.fn, tn=counts.tn,
         recall_at_100p=curve.recall_at_100p, auc=curve.auc, n_positive=curve.n_positive,
+        recall_at_100p_ci=ci.recall_at_100p if ci is not None else None,
+        auc_ci=ci.auc if ci is not None else None, ci_resamples=ci.resamples if ci is not None else 0,
     )
     return summary, curve

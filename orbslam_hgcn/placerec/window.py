@@ -12,13 +12,23 @@ leaves out the keyframes covisible with the query). Both are chosen here from th
   the last kept one (half the 0.5 m / 30 deg that make two synthetic frames the same
   place, so that consecutive images overlap but differ); otherwise one image per
   ``SAMPLE_EVERY_S`` seconds; a folder of images without timestamps is used whole.
+  A slow hand-held camera makes few distinct views, and few of them revisits: a figure
+  from six revisiting images measures nothing. So when the loop ground truth covers every
+  frame and has revisits, and that spacing leaves fewer than ``MIN_REVISITS`` images with a
+  revisit outside the exclusion window or fewer than ``MIN_IMAGES`` images, the spacing
+  shrinks by ``DENSIFY_STEP`` at a time (motion thresholds or seconds alike), at last to
+  every frame, until both are met; the sparsest spacing that meets them is used, else the
+  one with the most revisiting images, with a warning (:func:`sample_for_loops`).
   ``stride`` and ``every_s`` override.
 * **The exclusion window** (:func:`window_from_ground_truth`, :func:`window_from_timestamps`):
   a query ``i`` is compared with images ``j <= i - gap``. With a loop ground truth, ``gap``
   is its own smallest loop separation: the closest pair of revisits, where a revisit is a
   true pair not joined to the diagonal through other true pairs (pairs joined to it are one
   continuous visit: the frames around the query that show the same place). Without one,
-  it spans ``WINDOW_S`` seconds of the timestamps.
+  it spans ``WINDOW_S`` seconds of the timestamps. Either is found on the images as used,
+  after sampling, so a denser spacing gets a window of more images; the revisits are found
+  on the ground truth of every frame before it is cut down to the images used, so the
+  frames of one continuous visit never count as loops, whatever the spacing.
 """
 
 from __future__ import annotations
@@ -39,6 +49,14 @@ SAMPLE_EVERY_S = 0.5  # without poses: one image per this many seconds (hand-hel
 # Without a loop ground truth: leave out the images of the last WINDOW_S seconds (views stay
 # covisible for several seconds at hand-held and walking speeds).
 WINDOW_S = 10.0
+# With a loop ground truth over every frame that has revisits, the default spacing is made
+# denser until at least MIN_REVISITS images revisit an earlier one (outside the window) and
+# at least MIN_IMAGES are used, where the sequence allows: AUC and recall at 100% precision
+# from a handful of revisits are noise.
+MIN_REVISITS = 20
+MIN_IMAGES = 80
+DENSIFY_STEP = 2.0 ** -0.25  # each step shrinks the spacing to 84%
+DENSIFY_STEPS = 24  # at most (to 1/64 of the spacing), then every frame
 NEAR_IMAGES = 3  # best matches this close to the query are "the recent past", not loops
 NEAR_SHARE = 0.5  # warn when more than this share of the queries match the recent past
 
@@ -48,25 +66,31 @@ class Sampling:
     """The images of a sequence an experiment uses.
 
     indices: (n,) int64 frame indices into the whole sequence, increasing; how: in words.
+    revisiting: how many of them revisit an earlier one outside the exclusion window (None
+    when it was not counted: no ground truth over every frame); warning: a line saying why
+    that is too few to measure with, or None.
     """
 
     indices: np.ndarray
     how: str
-
-
-def _axis_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip(np.dot(a, b), -1.0, 1.0))))
+    revisiting: int | None = None
+    warning: str | None = None
+    min_gap: int | None = None  # a --min-gap rescaled to a denser spacing (see sample_for_loops)
 
 
 def sample_by_motion(poses_wc: np.ndarray, dist: float = SAMPLE_DIST_M, angle_deg: float = SAMPLE_ANGLE_DEG) -> np.ndarray:
     """(n,) int64 frames kept from (N, 4, 4) ``T_wc`` poses: the first, then each frame whose
     camera centre lies ``dist`` from the last kept one or whose optical axis turned ``angle_deg``."""
     keep = [0]
-    c, z = poses_wc[:, :3, 3], poses_wc[:, :3, 2]
-    for k in range(1, len(poses_wc)):
-        last = keep[-1]
-        if np.linalg.norm(c[k] - c[last]) >= dist or _axis_angle_deg(z[k], z[last]) >= angle_deg:
+    c, z = poses_wc[:, :3, 3].tolist(), poses_wc[:, :3, 2].tolist()
+    d2, cos_max = dist * dist, float(np.cos(np.radians(angle_deg)))
+    cl, zl = c[0], z[0]
+    for k in range(1, len(c)):
+        ck, zk = c[k], z[k]
+        moved = (ck[0] - cl[0]) ** 2 + (ck[1] - cl[1]) ** 2 + (ck[2] - cl[2]) ** 2 >= d2
+        if moved or zk[0] * zl[0] + zk[1] * zl[1] + zk[2] * zl[2] <= cos_max:
             keep.append(k)
+            cl, zl = ck, zk
     return np.asarray(keep, dtype=np.int64)
 
 
@@ -105,12 +129,143 @@ def sample_indices(
         if timestamps is None:
             raise OrbslamError("--every-s needs timestamps, and an image folder has none; use --stride")
         return Sampling(sample_by_time(timestamps, every_s), f"one image per {every_s:g} s (--every-s)")
-    if poses_wc is not None and len(poses_wc) == n_frames and np.all(np.isfinite(poses_wc[:, 0, 0])):
-        return Sampling(sample_by_motion(poses_wc),
-                        f"one image per {SAMPLE_DIST_M:g} m or {SAMPLE_ANGLE_DEG:g} deg of ground-truth camera motion")
+    if _has_poses(poses_wc, n_frames):
+        return Sampling(sample_by_motion(poses_wc), _motion_how(1.0))
     if timestamps is not None:
-        return Sampling(sample_by_time(timestamps, SAMPLE_EVERY_S), f"one image per {SAMPLE_EVERY_S:g} s")
+        return Sampling(sample_by_time(timestamps, SAMPLE_EVERY_S), _time_how(1.0))
     return Sampling(np.arange(n_frames, dtype=np.int64), "every image (an image folder has no timestamps)")
+
+
+def _has_poses(poses_wc: np.ndarray | None, n_frames: int) -> bool:
+    return poses_wc is not None and len(poses_wc) == n_frames and bool(np.all(np.isfinite(poses_wc[:, 0, 0])))
+
+
+def _motion_how(scale: float) -> str:
+    return f"one image per {SAMPLE_DIST_M * scale:.3g} m or {SAMPLE_ANGLE_DEG * scale:.3g} deg of ground-truth camera motion"
+
+
+def _time_how(scale: float) -> str:
+    return f"one image per {SAMPLE_EVERY_S * scale:.3g} s"
+
+
+def revisiting_images(revisits: np.ndarray, gap: int) -> int:
+    """How many images of (n, n) ``revisits`` (over the images used) revisit an earlier one
+    outside the window: a revisit pair ``(i, j)`` with ``j <= i - gap``."""
+    n = len(revisits)
+    return int(np.count_nonzero((np.asarray(revisits, dtype=bool) & np.tri(n, n, -max(1, gap), dtype=bool)).any(axis=1)))
+
+
+def count_revisiting(
+    revisits_all: np.ndarray, indices: np.ndarray, timestamps: np.ndarray | None, *,
+    min_gap: int | None = None, window_s: float | None = None,
+) -> int:
+    """How many of the frames ``indices`` revisit an earlier one of them outside the window
+    :func:`choose_window` gives these images. revisits_all: (N, N) :func:`revisit_pairs`
+    of the ground truth over every frame; timestamps: (N,) or None."""
+    sub = revisits_all[np.ix_(indices, indices)]
+    if not sub.any():
+        return 0
+    t = timestamps[indices] if timestamps is not None else None
+    return revisiting_images(sub, choose_window(sub, t, min_gap=min_gap, window_s=window_s).gap)
+
+
+def sample_for_loops(
+    n_frames: int,
+    timestamps: np.ndarray | None,
+    poses_wc: np.ndarray | None,
+    revisits_all: np.ndarray | None,
+    *,
+    stride: int | None = None,
+    every_s: float | None = None,
+    limit: int | None = None,
+    min_gap: int | None = None,
+    window_s: float | None = None,
+    name: str = "test",
+    min_revisits: int = MIN_REVISITS,
+    min_images: int = MIN_IMAGES,
+) -> Sampling:
+    """The frames a loop-closure experiment uses (see the module docstring).
+
+    The spacing of :func:`sample_indices` (``stride`` / ``every_s`` when given); when they
+    are not given and ``revisits_all`` ((N, N) :func:`revisit_pairs` of a ground truth over
+    every frame, or None) has a revisit, the spacing is shrunk step by step (motion
+    thresholds, else seconds, at last every frame) until at least ``min_revisits`` of the
+    first ``limit`` images kept revisit an earlier one outside their window
+    (:func:`choose_window` with ``min_gap`` / ``window_s``, found anew for each spacing) and
+    at least ``min_images`` are kept. The first spacing that meets both is used, else the one
+    with the most revisiting images (the sparsest of equals). ``Sampling.warning`` says so
+    when fewer than ``min_revisits`` images revisit. A ``min_gap`` counts images of the
+    default spacing; a denser one gets it rescaled by the ratio of the image counts
+    (:func:`rescale_gap`, in ``Sampling.min_gap``), so that it leaves out as much of the
+    recent past at any spacing.
+    """
+    base = sample_indices(n_frames, timestamps, poses_wc, stride=stride, every_s=every_s)
+    if revisits_all is None or len(revisits_all) != n_frames or not revisits_all.any():
+        return base
+
+    base_n = len(base.indices[:limit])
+
+    def gap_for(idx: np.ndarray) -> int | None:
+        return rescale_gap(min_gap, base_n, len(idx[:limit])) if min_gap is not None else None
+
+    def count(idx: np.ndarray) -> int:
+        return count_revisiting(revisits_all, idx[:limit], timestamps, min_gap=gap_for(idx), window_s=window_s)
+
+    def met(s: Sampling) -> bool:
+        return s.revisiting >= min_revisits and len(s.indices[:limit]) >= min_images
+
+    base = Sampling(base.indices, base.how, count(base.indices))
+    if stride is not None or every_s is not None or met(base):
+        return _with_warning(base, name, min_revisits, "as given")
+    by_motion = _has_poses(poses_wc, n_frames)
+    if not by_motion and timestamps is None:  # an image folder: every image already
+        return _with_warning(base, name, min_revisits, "")
+    tried = [base]
+    for k in range(1, DENSIFY_STEPS + 2):
+        if len(tried[-1].indices) == n_frames:
+            break
+        scale = DENSIFY_STEP ** k
+        if k > DENSIFY_STEPS:
+            idx, how = np.arange(n_frames, dtype=np.int64), "every image"
+        elif by_motion:
+            idx, how = sample_by_motion(poses_wc, SAMPLE_DIST_M * scale, SAMPLE_ANGLE_DEG * scale), _motion_how(scale)
+        else:
+            idx, how = sample_by_time(timestamps, SAMPLE_EVERY_S * scale), _time_how(scale)
+        if len(idx) == len(tried[-1].indices):
+            continue
+        s = Sampling(idx, how, count(idx))
+        tried.append(s)
+        if met(s):
+            break
+    chosen = next((s for s in tried if met(s)), None)
+    if chosen is None:
+        chosen = max(tried, key=lambda s: s.revisiting)  # the first of equals: the sparsest
+    if chosen is not base:
+        why = []
+        if base.revisiting < min_revisits:
+            why.append(f"{base.revisiting} revisiting images")
+        if len(base.indices[:limit]) < min_images:
+            why.append(f"{len(base.indices[:limit])} images")
+        first = f"{SAMPLE_DIST_M:g} m / {SAMPLE_ANGLE_DEG:g} deg" if by_motion else f"{SAMPLE_EVERY_S:g} s"
+        chosen = Sampling(chosen.indices, f"{chosen.how}; denser than {first}, which kept only {' and '.join(why)}",
+                          chosen.revisiting, min_gap=gap_for(chosen.indices))
+    return _with_warning(chosen, name, min_revisits, "which keeps every frame" if len(chosen.indices) == n_frames
+                         else "the spacing with the most of them, down to every frame")
+
+
+def rescale_gap(gap: int, n_from: int, n_to: int) -> int:
+    """A gap of ``gap`` images out of ``n_from`` as images out of ``n_to`` (same share, rounded up)."""
+    return max(1, int(np.ceil(gap * n_to / max(1, n_from) - 1e-9)))
+
+
+def _with_warning(s: Sampling, name: str, min_revisits: int, why: str) -> Sampling:
+    if s.revisiting is None or s.revisiting >= min_revisits:
+        return s
+    warning = (f"{name}: only {s.revisiting} images revisit an earlier one outside the exclusion window with "
+               f"{s.how.split(';')[0]}{', ' + why if why else ''}: fewer than the {min_revisits} that measure "
+               f"loop closure, so recall at 100% precision and AUC rest on {s.revisiting} queries; read their "
+               f"95% confidence intervals")
+    return Sampling(s.indices, s.how, s.revisiting, warning, s.min_gap)
 
 
 @dataclass(frozen=True)
@@ -177,11 +332,13 @@ def window_from_timestamps(timestamps: np.ndarray | None, seconds: float = WINDO
     return Window(gap, _span_seconds(gap, t), src)
 
 
-def fixed_window(gap: int, timestamps: np.ndarray | None = None) -> Window:
-    """A window given in images (``--min-gap``)."""
-    if gap < 1:
-        raise OrbslamError(f"--min-gap must be at least 1, found {gap}")
-    return Window(gap, _span_seconds(gap, timestamps), "--min-gap")
+def fixed_window(gap: int, timestamps: np.ndarray | None = None, given: int | None = None) -> Window:
+    """A window given in images (``--min-gap``); ``given``: the gap as given, when ``gap`` is
+    it rescaled to a denser spacing."""
+    if gap < 1 or (given is not None and given < 1):
+        raise OrbslamError(f"--min-gap must be at least 1, found {given if given is not None else gap}")
+    src = "--min-gap" if given is None or given == gap else f"--min-gap {given}, rescaled to the denser sampling"
+    return Window(gap, _span_seconds(gap, timestamps), src)
 
 
 def choose_window(
@@ -190,13 +347,15 @@ def choose_window(
     *,
     min_gap: int | None = None,
     window_s: float | None = None,
+    given_gap: int | None = None,
 ) -> Window:
     """The window of one sequence: ``min_gap`` (images) or ``window_s`` (seconds) when given,
-    else the ground truth's smallest loop separation, else ``WINDOW_S`` of the timestamps."""
+    else the ground truth's smallest loop separation, else ``WINDOW_S`` of the timestamps.
+    given_gap: the ``--min-gap`` as given when ``min_gap`` is it rescaled."""
     if min_gap is not None and window_s is not None:
         raise OrbslamError("--min-gap and --window-s both set the exclusion window; give one")
     if min_gap is not None:
-        return fixed_window(min_gap, timestamps)
+        return fixed_window(min_gap, timestamps, given_gap)
     if window_s is not None:
         return window_from_timestamps(timestamps, window_s, f"--window-s {window_s:g}")
     found = window_from_ground_truth(revisits, timestamps) if revisits is not None else None
