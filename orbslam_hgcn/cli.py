@@ -182,7 +182,9 @@ def _add_lcd(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--vocab", default=None,
                    help="one vocabulary for every method: orb, hgcn or a file (default: ORB tree "
                    "for bow/fabmap2, HGCN vocabulary for hgcn-*)")
-    p.add_argument("--vocab-orb", default=None, help="ORB-tree vocabulary file for bow and fabmap2")
+    p.add_argument("--vocab-orb", default=None,
+                   help="ORB-tree vocabulary for bow and fabmap2 (default orb10k: the ORB tree at about the HGCN's "
+                   "size, trained on the same photographs; 'orb' for the ORB-SLAM-shaped tree)")
     p.add_argument("--vocab-hgcn", default=None, help="HGCN vocabulary file for hgcn-bow and hgcn-fabmap")
     p.add_argument("--levels", type=int, default=None, metavar="N",
                    help="ORB-tree vocabularies: take as words the tree's nodes N levels below the root "
@@ -475,7 +477,7 @@ def _add_vocab(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--out", required=True, help="output vocabulary file (.npz)")
     t.add_argument("--max-images", type=int, default=None, help="use at most this many images, evenly spread")
     t.add_argument("--features", type=int, default=1000, help="ORB features per image (default 1000)")
-    t.add_argument("--levels", type=int, default=None, help="orb: tree depth L (default 5)")
+    t.add_argument("--levels", type=int, default=None, help="orb: tree depth L (default 6, as ORB-SLAM's ORBvoc)")
     t.add_argument("--branching", type=int, default=None, help="orb: children per node k (default 10)")
     t.add_argument("--label-fraction", type=float, default=None, help="hgcn: fraction of seeded nodes (0.1)")
     t.add_argument("--epochs", type=int, default=None,

@@ -415,7 +415,7 @@ class TreeTrainConfig:
     ORBvoc uses k = 10, L = 6)."""
 
     k: int = 10  # children per node
-    levels: int = 5  # depth L: up to k^L words
+    levels: int = 6  # depth L: up to k^L words (ORBvoc: 6)
     max_iters: int = 10  # Lloyd iterations of k-medians per level
     seed: int = 0  # k-means++ seeding
 

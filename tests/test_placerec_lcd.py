@@ -160,7 +160,7 @@ def _write_scene(scene, tmp_path):
 
 
 def test_lcd_stops_with_a_clear_error_when_memory_would_not_suffice(scene, tmp_path, capsys, monkeypatch):
-    """With the shipped 99k-word ORB tree, FAB-MAP's per-word tables and Chow-Liu tree need
+    """With the shipped ORB-SLAM-shaped tree (about 800k words), FAB-MAP's per-word tables and Chow-Liu tree need
     more than a 40 MiB limit: the command exits with status 2 and one line naming the memory
     needed and available and the way out, before any detector runs."""
     from orbslam_hgcn.cli import main
@@ -172,7 +172,7 @@ def test_lcd_stops_with_a_clear_error_when_memory_would_not_suffice(scene, tmp_p
     monkeypatch.setattr(lcd, "detect", lambda *a, **k: ran.append(a[0]) or real_detect(*a, **k))
     monkeypatch.setenv("ORBSLAM_HGCN_MEMORY_LIMIT_MB", "40")
     code = main(["lcd", "--method", "bow,fabmap2", "--train", str(folders["train"]), "--test", str(folders["test"]),
-                 "--n-features", "300", "--out", str(tmp_path / "out")])
+                 "--n-features", "300", "--vocab-orb", "orb", "--out", str(tmp_path / "out")])
     stderr = capsys.readouterr().err
     err = [line for line in stderr.splitlines() if line.startswith("orbslam-hgcn lcd: error:")]
     assert code == 2
@@ -180,18 +180,18 @@ def test_lcd_stops_with_a_clear_error_when_memory_would_not_suffice(scene, tmp_p
     assert len(err) == 1 and "Traceback" not in stderr, stderr
     from orbslam_hgcn.vocabulary import load_vocabulary
 
-    n_words = load_vocabulary("orb").n_words  # about 99k
+    n_words = load_vocabulary("orb").n_words  # about 800k
     m = re.search(r"FAB-MAP 2\.0 \(24 training and 13 test images; a Chow-Liu tree over the ([0-9]+) of "
                   rf"{n_words} words that vary in training\) needs about ([0-9]+) MiB of memory but 40 MiB is available; "
                   r"use a smaller vocabulary .*--levels N", err[0])
     assert m, err[0]
     v_occ, need = int(m.group(1)), int(m.group(2))
     assert 1000 < v_occ < 24 * 300
-    assert 600 * n_words / 2**20 < need < 70  # linear in the words: tables of 99k words, the tree's rows
+    assert 600 * n_words / 2**20 < need < 620 * n_words / 2**20  # linear in the words: the tables, the tree's rows
     assert not (tmp_path / "out" / "lcd_results.json").exists()
     # the same run with the ORB tree's words three levels below the root (<= 1000 words) fits
     code = main(["lcd", "--method", "fabmap2", "--train", str(folders["train"]), "--test", str(folders["test"]),
-                 "--n-features", "300", "--levels", "3", "--out", str(tmp_path / "out")])
+                 "--n-features", "300", "--vocab-orb", "orb", "--levels", "3", "--out", str(tmp_path / "out")])
     assert code == 0
     assert ran == ["fabmap2"]
     record = json.loads((tmp_path / "out" / "lcd_results.json").read_text())
