@@ -239,3 +239,24 @@ def test_the_table_prints_the_intervals():
     lo, hi = summary.auc_ci
     assert f"{100 * summary.auc:6.1f} [{100 * lo:5.1f},{100 * hi:5.1f}]" in table
     assert "bootstrap over the 101 test queries, 1000 resamples" in table
+
+
+def test_blocks_of_consecutive_queries_widen_the_interval_of_a_figure_from_one_visit():
+    """Queries inside the exclusion window see the same place: a figure whose positives all
+    sit in one run of consecutive queries must not read as certain. Resampled in blocks of
+    the window, the interval is wider than with single queries; block 1 is the plain
+    bootstrap, and a block longer than the queries is the whole set, wrapped."""
+    score, correct, positive = _queries(300, seed=4, share=0.0)
+    positive[200:240] = True
+    correct[200:230] = True
+    score[200:230] += 0.5
+    single = bootstrap_from_decisions(score, correct, positive)
+    assert bootstrap_from_decisions(score, correct, positive, block=1) == single
+    blocked = bootstrap_from_decisions(score, correct, positive, block=60)
+    w1 = single.recall_at_100p[1] - single.recall_at_100p[0]
+    w60 = blocked.recall_at_100p[1] - blocked.recall_at_100p[0]
+    assert w60 > 1.3 * w1, (w1, w60)
+    whole = bootstrap_from_decisions(score, correct, positive, block=10_000)
+    assert whole.queries == 300 and whole.valid > 0
+    s, gt = _matrix(score, correct, positive)
+    assert bootstrap_ci(s, gt, 60) == bootstrap_from_decisions(*decisions(s, gt, 60), block=60)

@@ -318,8 +318,10 @@ def format_table(results: list[LcdResult]) -> str:
     lines.append(f"({n_pos} test images have a true loop; accuracy = precision TP/(TP+FP))")
     resamples = max((r.score.ci_resamples for r in results), default=0)
     if resamples:
-        lines.append(f"([95% CI]: bootstrap over the {n_queries} test queries, {resamples} resamples with "
-                     f"replacement, fixed seed; few true loops make it wide)")
+        gap = results[0].matches.min_gap if results else 1
+        lines.append(f"([95% CI]: bootstrap over the {n_queries} test queries in blocks of {gap} consecutive ones "
+                     f"(the exclusion window), {resamples} resamples with replacement, fixed seed; few true loops, "
+                     f"or loops from one visit, make it wide)")
     if any(r.threshold_from == "fitted on training" for r in results):
         fits = ", ".join(f"{r.score.method} {pct(r.train_score.recall).strip()}%" for r in results
                          if r.train_score is not None)
