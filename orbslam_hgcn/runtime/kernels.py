@@ -75,6 +75,28 @@ def announce_compile(modules: tuple[str, ...] = RUN_KERNEL_MODULES) -> list[str]
     return cold
 
 
+def warm_up_tracking() -> float:
+    """Compile (first run after an install) or load from numba's cache the compiled kernels
+    of tracking and local mapping (pose-only optimisation, projection search and fusion,
+    triangulation search and checks, map point refresh) and the readers' PNG rows, each
+    module warming its own; returns the seconds it took. When numba's cache lacks a run's
+    kernels (these, local BA's, extraction's) it says first that they are compiled now, once."""
+    from orbslam_hgcn.backend import pose_only
+    from orbslam_hgcn.datasets import png
+    from orbslam_hgcn.geometry import triangulation
+    from orbslam_hgcn.map import mappoint
+    from orbslam_hgcn.match import matching, projection_search
+
+    announce_compile()
+    t0 = time.perf_counter()
+    for module in (pose_only, projection_search, matching, triangulation, mappoint, png):
+        module.warm_up()
+    seconds = time.perf_counter() - t0
+    if seconds > 2.0:
+        log.info("compiled the tracking kernels in %.1f s (cached for later runs)", seconds)
+    return seconds
+
+
 def warm_all() -> float:
     """Compile (or load) every kernel of a run: tracking and local mapping's, local BA's
     and ORB extraction's; returns the seconds it took."""
@@ -82,10 +104,9 @@ def warm_all() -> float:
     from orbslam_hgcn.features.orb import ORBExtractor
     from orbslam_hgcn.geometry.camera import PinholeCamera
     from orbslam_hgcn.runtime.extraction import warm_up_extractors
-    from orbslam_hgcn.runtime.system import warm_up_kernels
 
     t0 = time.perf_counter()
-    warm_up_kernels()
+    warm_up_tracking()
     schur_ba.warm_up()
     camera = PinholeCamera(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
     warm_up_extractors([ORBExtractor()], camera)

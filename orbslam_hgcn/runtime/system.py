@@ -47,7 +47,6 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from orbslam_hgcn.backend import pose_only
 from orbslam_hgcn.config import (
     BackendConfig,
     InitializerConfig,
@@ -63,18 +62,16 @@ from orbslam_hgcn.config import (
     section_from_yaml,
 )
 from orbslam_hgcn.childprocess import stopping
-from orbslam_hgcn.datasets import Sequence, png
+from orbslam_hgcn.datasets import Sequence
 from orbslam_hgcn.datasets.base import FrameRecord, SequenceEnded
 from orbslam_hgcn.errors import ConfigError, DatasetError, FrameError, Terminated
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.features.orb import ORBExtractor
-from orbslam_hgcn.geometry import triangulation
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.loop.closer import LoopCloser
-from orbslam_hgcn.map import Frame, KeyFrame, Map, mappoint
+from orbslam_hgcn.map import Frame, KeyFrame, Map
 from orbslam_hgcn.map.atlas import Atlas
 from orbslam_hgcn.mapping.local_mapper import LocalMapper
-from orbslam_hgcn.match import matching, projection_search
 from orbslam_hgcn.runtime.extraction import ExtractionError, ExtractionProcess, warm_up_extractors
 from orbslam_hgcn.runtime.locks import TrackingFirstLock, first
 from orbslam_hgcn.runtime.results import (
@@ -116,20 +113,10 @@ def limit_library_threads(n: int) -> dict[str, int]:
 
 def warm_up_kernels() -> float:
     """Compile (first run after an install) or load from numba's cache the compiled kernels
-    of tracking and local mapping (pose-only optimisation, projection search and fusion,
-    triangulation search and checks, map point refresh) and the readers' PNG rows, each
-    module warming its own; returns the seconds it took. When numba's cache lacks a run's
-    kernels (these, local BA's, extraction's) it says first that they are compiled now, once."""
-    from orbslam_hgcn.runtime.kernels import announce_compile
+    of tracking and local mapping: :func:`orbslam_hgcn.runtime.kernels.warm_up_tracking`."""
+    from orbslam_hgcn.runtime.kernels import warm_up_tracking
 
-    announce_compile()
-    t0 = time.perf_counter()
-    for module in (pose_only, projection_search, matching, triangulation, mappoint, png):
-        module.warm_up()
-    seconds = time.perf_counter() - t0
-    if seconds > 2.0:
-        log.info("compiled the tracking kernels in %.1f s (cached for later runs)", seconds)
-    return seconds
+    return warm_up_tracking()
 
 
 @dataclass(frozen=True)
