@@ -88,7 +88,7 @@ def test_exported_text_is_what_orbslam_reads(exported):
     orig, path, _ = exported
     text = path.read_text()
     lines = text.split("\n")
-    assert lines[0] == "10 5  0 0"  # k L scoring(L1 = 0) weighting(TF-IDF = 0), as saveToTextFile writes it
+    assert lines[0] == "10 6  0 0"  # k L scoring(L1 = 0) weighting(TF-IDF = 0), as saveToTextFile writes it
     assert not text.endswith("\n")  # ORB-SLAM's reader would make a trailing empty line a node
     assert len(lines) == len(orig.parent)
     fields = [line.split() for line in lines[1:]]

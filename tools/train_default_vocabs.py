@@ -48,6 +48,16 @@ log = logging.getLogger("train_default_vocabs")
 FIRST_SCENE_SEED = 1001
 ORB_LEVELS = 6  # ORB-SLAM's ORBvoc.txt: k = 10, L = 6
 KINDS = ("orb", "orb10k", "kmeans", "hgcn", "hgcn_graph", "hgcn_graph_mean")  # in build order
+# What each file is for, kept in its metadata (``vocab info`` prints it).
+ROLES = {
+    "orb": "the ORB baseline at ORB-SLAM's ORBvoc shape; exported with 'vocab export orb' it is ORB-SLAM3's vocabulary "
+           "in bench/bench_peer.py (gate: >= 98% of KITTI 00 frames 0-159 tracked)",
+    "orb10k": "the ORB tree at the flat vocabularies' size: the baselines (BoW, FAB-MAP 2.0) of 'lcd' and arm 'orb' "
+              "of bench/bench_track_words.py",
+    "kmeans": "default vocabulary of run: no arm beat its words (A0) in bench/bench_track_words.py, on the rendered "
+              "families or on the held-out real photographs (bench/results/track_words*.json)",
+    "hgcn": "the paper's vocabulary (arm A1); the demo and 'compare' run it against the ORB tree",
+}
 
 
 def render_training_scenes(work: Path, n_scenes: int, frames: int, progress: bool) -> list[Path]:
@@ -141,6 +151,8 @@ def main(argv: list[str] | None = None) -> int:
                                      hgcn=dataclasses.replace(HgcnTrainConfig(), n_words=args.hgcn_words),
                                      track_ids=track_ids, trained_on=trained_on)
         vocab.metadata.params["n_features"] = args.features
+        if kind in ROLES:
+            vocab.metadata.stats["role"] = ROLES[kind]
         vocab.save(out)
         log.info("%s: %d words, %.1f MB, trained in %.0f s", out, vocab.n_words, out.stat().st_size / 1e6,
                  time.perf_counter() - t)
