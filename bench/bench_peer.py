@@ -15,15 +15,17 @@ Each run starts both systems in turn, each in a subprocess of its own, on the sa
   ``Shutdown``, the keyframe trajectory. A crash or an ``exit`` inside ORB-SLAM3 ends that
   process only; the bench reports it and goes on.
 
-ORB-SLAM3's vocabulary. By default ``../shared/peer/ORBvoc_real_k10L6.txt.gz`` beside the
-repository (a 6-level DBoW2 tree trained on real photographs, no KITTI frame among them;
-see the README there), gunzipped once into ``~/.cache/orbslam_hgcn/peer/`` since ORB-SLAM3
-reads text. When that file is missing the bench says so and exits with status 2.
-``--peer-vocab FILE`` takes any DBoW2 text vocabulary (``.txt`` or ``.txt.gz``) or an
-orbslam_hgcn ORB-tree vocabulary (a ``.npz`` file or a shipped name such as ``orb``),
-exported to DBoW2 text with ``orbslam-hgcn vocab export`` into the same cache. The
-project's shipped ORB tree lets ORB-SLAM3 track only about 28 of the 160 KITTI 00 frames:
-a comparison against a peer that loses its frames compares nothing.
+ORB-SLAM3's vocabulary. By default the project's shipped ORB tree (``orb``: k = 10, L = 6,
+trained on real photographs, no benchmark frame among them), exported to DBoW2 text with
+``orbslam-hgcn vocab export`` into ``~/.cache/orbslam_hgcn/peer/`` since ORB-SLAM3 reads
+text; it passes the gate below (159 of the 160 KITTI 00 frames tracked in each of 3 runs).
+``--peer-vocab FILE`` takes any DBoW2 text vocabulary (``.txt`` or ``.txt.gz``, gunzipped
+into the same cache) or another orbslam_hgcn ORB-tree vocabulary (a ``.npz`` file or a
+shipped name); ``../shared/peer/ORBvoc_real_k10L6.txt.gz`` beside the repository is a
+tree made independently of the project (see the README there), for a comparison that does
+not lean on the project's own training. The shipped tree of earlier versions (trained
+mostly on renders) let ORB-SLAM3 track only about 28 of the 160 KITTI 00 frames: a
+comparison against a peer that loses its frames compares nothing.
 
 A comparison counts only when both systems track at least 95% of the frames given
 (``VALID_SHARE``): ours, frames with a pose in the final map; ORB-SLAM3, frames in state
@@ -133,6 +135,9 @@ VALID_SHARE = 0.95  # a comparison counts only when both systems track this shar
 GATE_SHARE = 0.98  # --gate: a vocabulary passes when ORB-SLAM3's median run tracks this share
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_PEER_VOCAB = REPO.parent / "shared" / "peer" / "ORBvoc_real_k10L6.txt.gz"
+# ORB-SLAM3's vocabulary unless --peer-vocab says otherwise: the project's shipped ORB tree,
+# trained on real photographs, which passes the gate (>= 98% of KITTI 00 frames 0-159 tracked).
+DEFAULT_PEER_SPEC = "orb"
 CACHE = Path.home() / ".cache" / "orbslam_hgcn" / "peer"
 
 
@@ -768,11 +773,11 @@ def main() -> int:
     p.add_argument("--config", default=None, help="camera YAML or shipped name, for both systems (as run --config)")
     p.add_argument("--runs", type=int, default=3, help="runs of each system (default 3); every run and the median")
     p.add_argument("--max-frames", type=int, default=None, help="at most this many frames")
-    p.add_argument("--peer-vocab", "--vocab", dest="peer_vocab", default=None, metavar="FILE",
+    p.add_argument("--peer-vocab", "--vocab", dest="peer_vocab", default=DEFAULT_PEER_SPEC, metavar="FILE",
                    help="ORB-SLAM3's vocabulary: a DBoW2 text file (.txt, or .txt.gz, gunzipped into "
                    "~/.cache/orbslam_hgcn/peer/) or an orbslam_hgcn ORB tree (.npz, or a shipped name such as "
-                   "'orb'), exported to DBoW2 text there (default: ../shared/peer/ORBvoc_real_k10L6.txt.gz "
-                   "beside the repository)")
+                   "'orb'), exported to DBoW2 text there (default: 'orb', the shipped tree, which passes --gate; "
+                   "../shared/peer/ORBvoc_real_k10L6.txt.gz beside the repository is the independent one)")
     p.add_argument("--gate", action="store_true",
                    help="check the vocabulary: run ORB-SLAM3 only and print frames tracked / given per run; exit "
                    f"status 0 when the median run tracks at least {GATE_SHARE:.0%} of them, else 1")
