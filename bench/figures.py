@@ -53,6 +53,9 @@ BEGIN, END = "<!-- figures:begin -->", "<!-- figures:end -->"
 # starts with one of the prefixes (all parts for None). A line whose result or figure is
 # not recorded is left out.
 KEY_LINES = [
+    ("peer_gate_kitti00", "verdict", None,
+     "ORB-SLAM3 given the shipped ORB tree (`vocab export orb`), KITTI 00 frames 0-159, paced"),
+    ("peer_kitti00", "median", None, "throughput beside ORB-SLAM3 (same machine, same run), KITTI 00 unpaced"),
     ("kitti00_load", "kitti00/none/threaded", ("3 runs", "tracked", "keyframe ATE", "camera ATE", "frame latency"),
      "KITTI 00 frames 0-159, `orbslam-hgcn run` defaults, paced"),
     ("kitti00_load", "kitti00/hog/threaded", ("tracked", "keyframe ATE", "camera ATE"),
@@ -61,6 +64,8 @@ KEY_LINES = [
      "KITTI 00 unpaced, k-means words (ratios against the ORB tree)"),
     ("track_words", "8000 words, AP", None, "place recognition AP, 20 rendered offices, 8000 words"),
     ("track_words_street", "8000 words, AP", None, "the same, 8 rendered street drives"),
+    ("track_words_photos", "8000 words, AP", None,
+     "the same, held-out real CamVid frames (6 units; truth by fundamental-matrix inliers)"),
     ("track_words_kitti", "8000 words, false positives of 44 queries", None,
      "real KITTI 00 (no revisit), false detections of 44 queries"),
 ]
