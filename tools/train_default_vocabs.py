@@ -48,6 +48,8 @@ log = logging.getLogger("train_default_vocabs")
 FIRST_SCENE_SEED = 1001
 ORB_LEVELS = 6  # ORB-SLAM's ORBvoc.txt: k = 10, L = 6
 KINDS = ("orb", "orb10k", "kmeans", "hgcn", "hgcn_graph", "hgcn_graph_mean")  # in build order
+# The arm of bench/bench_track_words.py each flat vocabulary is (its metadata's params).
+ARMS = {"kmeans": "A0", "hgcn": "A1"}
 # What each file is for, kept in its metadata (``vocab info`` prints it).
 ROLES = {
     "orb": "the ORB baseline at ORB-SLAM's ORBvoc shape; exported with 'vocab export orb' it is ORB-SLAM3's vocabulary "
@@ -151,6 +153,8 @@ def main(argv: list[str] | None = None) -> int:
                                      hgcn=dataclasses.replace(HgcnTrainConfig(), n_words=args.hgcn_words),
                                      track_ids=track_ids, trained_on=trained_on)
         vocab.metadata.params["n_features"] = args.features
+        if kind in ARMS:
+            vocab.metadata.params["arm"] = ARMS[kind]
         if kind in ROLES:
             vocab.metadata.stats["role"] = ROLES[kind]
         vocab.save(out)
