@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
@@ -74,6 +75,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"orbslam-hgcn {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # output piped to a reader that stopped (| head): stop quietly, as cat does
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except OSError:
+            pass
+        return 141
     finally:
         signal.signal(signal.SIGTERM, previous)
         set_stopping(False)

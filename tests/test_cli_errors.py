@@ -267,3 +267,16 @@ def _one_line_without_traceback(err: str, command: str) -> None:
     assert "Traceback" not in err
     lines = [ln for ln in err.splitlines() if ln.startswith("orbslam-hgcn")]
     assert len(lines) == 1 and lines[0].startswith(f"orbslam-hgcn {command}: "), err
+
+
+def test_output_piped_into_a_reader_that_stops_ends_without_a_traceback():
+    """`orbslam-hgcn vocab info hgcn | true`: the reader has closed the pipe before the command
+    writes (the interpreter's start alone takes longer than `true`); the command stops quietly
+    with status 141, as a shell reports SIGPIPE, and no traceback."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run(["bash", "-c", f"'{sys.executable}' -m orbslam_hgcn vocab info hgcn | true; "
+                           "echo status ${PIPESTATUS[0]} >&2"], capture_output=True, text=True, timeout=300)
+    assert "Traceback" not in proc.stderr and "BrokenPipeError" not in proc.stderr, proc.stderr
+    assert "status 141" in proc.stderr, proc.stderr
