@@ -234,11 +234,11 @@ def test_the_table_prints_the_intervals():
     s, gt = _matrix(score, correct, positive)
     summary, curve = score_detector("BoW", s, gt, 0.5, 1)
     r = SimpleNamespace(score=summary, threshold_from="given", train_score=None,
-                        matches=SimpleNamespace(matched=np.zeros(101)))
+                        matches=SimpleNamespace(matched=np.zeros(101), min_gap=1))
     table = format_table([r])
     lo, hi = summary.auc_ci
     assert f"{100 * summary.auc:6.1f} [{100 * lo:5.1f},{100 * hi:5.1f}]" in table
-    assert "bootstrap over the 101 test queries, 1000 resamples" in table
+    assert "bootstrap over the 101 test queries in blocks of 1 consecutive ones" in table and "1000 resamples" in table
 
 
 def test_blocks_of_consecutive_queries_widen_the_interval_of_a_figure_from_one_visit():
