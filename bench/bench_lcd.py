@@ -410,25 +410,18 @@ def photo_truth(files: list[Path], cache_dir: Path, min_inliers: int) -> tuple[n
     counts of every pair (bench_track_words' :func:`photo_inliers` on ORB-SLAM extractor
     features; cached in ``cache_dir`` by extractor settings and file names) and the same-place
     matrix ``inliers >= min_inliers``, symmetric with a false diagonal."""
-    import hashlib
-
-    from orbslam_hgcn.datasets.base import read_image
     from orbslam_hgcn.features.orb import ORBExtractor
 
     tw = _track_words()
     extractor = ORBExtractor()
-    key = hashlib.sha1(f"{tw.FEATURE_CACHE_VERSION} {extractor.config!r} {[f.name for f in files]}".encode()).hexdigest()[:12]
-    cached = Path(cache_dir) / f"inliers_{files[0].stem}-{files[-1].stem}_{key}.npy"
+    cached = Path(cache_dir) / f"inliers_{files[0].stem}-{files[-1].stem}_{tw.photo_cache_key(files, extractor)}.npy"
     if cached.exists():
         inliers = np.load(cached)
     else:
-        kps = [extractor.extract(read_image(f)) for f in files]
-        inliers = tw.photo_inliers([k.desc for k in kps], [np.asarray(k.uv, np.float32) for k in kps])
+        inliers = tw.photo_inliers(*tw.photo_features(files, extractor))
         cached.parent.mkdir(parents=True, exist_ok=True)
         np.save(cached, inliers)
-    gt = inliers >= min_inliers
-    np.fill_diagonal(gt, False)
-    return inliers, gt
+    return inliers, tw.same_place(inliers, min_inliers)
 
 
 def photos_main(args: argparse.Namespace) -> None:

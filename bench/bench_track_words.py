@@ -682,30 +682,47 @@ def photo_inliers(desc: list[np.ndarray], uv: list[np.ndarray]) -> np.ndarray:
     return n
 
 
+def photo_cache_key(files: list[Path], extractor: ORBExtractor) -> str:
+    """The cache key of figures computed from the features of ``files``: extractor settings
+    and file names."""
+    return hashlib.sha1(f"{FEATURE_CACHE_VERSION} {extractor.config!r} {[f.name for f in files]}".encode()).hexdigest()[:12]
+
+
+def photo_features(files: list[Path], extractor: ORBExtractor) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """ORB descriptors (N_i, 32) and keypoint positions (N_i, 2) float32 of each image file."""
+    from orbslam_hgcn.datasets.base import read_image
+
+    kps = [extractor.extract(read_image(f)) for f in files]
+    return [k.desc for k in kps], [np.asarray(k.uv, np.float32) for k in kps]
+
+
+def same_place(inliers: np.ndarray, min_inliers: int) -> np.ndarray:
+    """(K, K) bool loop truth from :func:`photo_inliers`: at least ``min_inliers``, never an
+    image with itself."""
+    gt = inliers >= min_inliers
+    np.fill_diagonal(gt, False)
+    return gt
+
+
 def photo_keyframes(cache_dir: Path, unit: int, args, extractor: ORBExtractor) -> Keyframes:
     """Unit ``unit`` of :func:`photo_units` (its images the keyframes, in order, one frame
     apart): ORB features, tracks between consecutive images and the pairs' inlier counts
     kept in the cache; loop truth: at least ``--min-inliers`` inliers; no depth, no pose."""
     name, files = photo_units(args.photo_dir)[unit]
-    key = hashlib.sha1(f"{FEATURE_CACHE_VERSION} {extractor.config!r} {[f.name for f in files]}".encode()).hexdigest()[:12]
-    cached = cache_dir / "photos" / f"{name}_{key}.npz"
+    cached = cache_dir / "photos" / f"{name}_{photo_cache_key(files, extractor)}.npz"
     if cached.exists():
         with np.load(cached) as z:
             cut = np.cumsum(z["sizes"])[:-1]
             desc, uv, tid, inliers = np.split(z["desc"], cut), np.split(z["uv"], cut), z["tracks"], z["inliers"]
     else:
-        from orbslam_hgcn.datasets.base import read_image
-
-        kps = [extractor.extract(read_image(f)) for f in files]
-        desc, uv = [k.desc for k in kps], [np.asarray(k.uv, np.float32) for k in kps]
+        desc, uv = photo_features(files, extractor)
         tid = build_tracks(desc, uv, np.zeros(len(desc), np.int64), progress=False)
         inliers = photo_inliers(desc, uv)
         cached.parent.mkdir(parents=True, exist_ok=True)
         np.savez(cached, sizes=np.array([len(d) for d in desc]), desc=np.concatenate(desc), uv=np.concatenate(uv),
                  tracks=tid, inliers=inliers)
     tracks = np.split(tid, np.cumsum([len(d) for d in desc])[:-1])
-    gt = inliers >= args.min_inliers
-    np.fill_diagonal(gt, False)
+    gt = same_place(inliers, args.min_inliers)
     return Keyframes(name, np.arange(len(desc)) * args.kf_every, desc, uv, tracks, max(1, args.min_gap // args.kf_every),
                      gt, np.zeros((len(desc), 3)), [np.full((len(d), 3), np.nan) for d in desc])
 

@@ -20,6 +20,7 @@ SHARED_DATA = Path(os.environ.get("ORBSLAM_HGCN_TEST_DATA") or REPO.parent / "sh
 TUM_SAMPLE = SHARED_DATA / "tum_fr3_long_office_household_sample"
 EUROC_SAMPLE = SHARED_DATA / "euroc_V1_01_easy_first95"
 KITTI_SAMPLE = SHARED_DATA / "kitti00_first160" / "sequences" / "00"
+REAL_PHOTOS = SHARED_DATA / "real_photos"
 # The whole suite's time budget, seconds (2 cores; each test also has pytest-timeout's limit).
 SUITE_BUDGET_S = float(os.environ.get("ORBSLAM_HGCN_TEST_BUDGET_S", 1200))
 # The real fr3 long-office camera path (ground truth only; tests/data/README.md).
@@ -41,6 +42,14 @@ def load_bench(name: str):
     sys.modules[name] = mod
     spec.loader.exec_module(mod)
     return mod
+
+
+def real_photo_folder() -> Path:
+    """The real photographs of the shared data (the held-out CamVid frames the benches judge
+    vocabularies on among them); the calling test skips, saying why, without them."""
+    if not (REAL_PHOTOS / "camvid_0620.jpg").is_file():
+        pytest.skip(f"{REAL_PHOTOS}: no real photos")
+    return REAL_PHOTOS
 
 
 @functools.lru_cache(maxsize=None)

@@ -3,7 +3,7 @@ truth it builds by geometric verification (bench_track_words' photo_inliers)."""
 
 import numpy as np
 import pytest
-from conftest import load_bench
+from conftest import load_bench, real_photo_folder
 
 
 @pytest.fixture(scope="module")
@@ -11,19 +11,10 @@ def lcd():
     return load_bench("bench_lcd")
 
 
-def _photo_folder():
-    from orbslam_hgcn.vocabulary.training.photos import default_photo_folder
-
-    folder = default_photo_folder()
-    if not (folder / "camvid_0620.jpg").is_file():
-        pytest.skip(f"{folder}: no real photos")
-    return folder
-
-
 def test_photo_sequences_test_on_held_out_frames_only(lcd):
     from orbslam_hgcn.vocabulary.training.photos import HOLDOUT, photo_files
 
-    folder = _photo_folder()
+    folder = real_photo_folder()
     train, test = lcd.photo_sequences(folder)
     assert test == photo_files(folder, "heldout")["camvid"]
     assert test[0].name == f"camvid_{HOLDOUT['camvid']:04d}.jpg"
@@ -32,7 +23,7 @@ def test_photo_sequences_test_on_held_out_frames_only(lcd):
 
 
 def test_photo_truth_marks_the_same_street_and_not_an_unrelated_photo(lcd, tmp_path):
-    folder = _photo_folder()
+    folder = real_photo_folder()
     files = [folder / f for f in ("camvid_0620.jpg", "camvid_0621.jpg", "imagenet_sample_0000.jpg")]
     inliers, gt = lcd.photo_truth(files, tmp_path, 40)
     assert (inliers == inliers.T).all() and (gt == gt.T).all()

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import load_bench
+from conftest import load_bench, real_photo_folder
 
 from orbslam_hgcn.vocabulary.bow import BowVector
 
@@ -321,19 +321,10 @@ def test_settings_of_the_map_family_write_as_json(tw):
     assert back["cache_dir"] == "/c" and back["sizes"] == [8000, 1000]
 
 
-def _photo_folder():
-    from orbslam_hgcn.vocabulary.training.photos import default_photo_folder
-
-    folder = default_photo_folder()
-    if not (folder / "camvid_0620.jpg").is_file():
-        pytest.skip(f"{folder}: no real photos")
-    return folder
-
-
 def test_photo_units_are_held_out_images_only(tw):
     from orbslam_hgcn.vocabulary.training.photos import HOLDOUT, photo_files
 
-    folder = _photo_folder()
+    folder = real_photo_folder()
     units = tw.photo_units(folder)
     held = {f for fs in photo_files(folder, "heldout").values() for f in fs}
     train = {f for fs in photo_files(folder, "train").values() for f in fs}
@@ -351,7 +342,7 @@ def test_photo_truth_is_geometric_verification(tw):
     from orbslam_hgcn.datasets.base import read_image
     from orbslam_hgcn.features.orb import ORBExtractor
 
-    folder = _photo_folder()
+    folder = real_photo_folder()
     ex = ORBExtractor()
     # two consecutive held-out CamVid frames (the same street) and an unrelated ImageNet photo
     kps = [ex.extract(read_image(folder / f)) for f in ("camvid_0620.jpg", "camvid_0621.jpg",
