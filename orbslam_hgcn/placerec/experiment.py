@@ -76,6 +76,7 @@ def prepare_sequence(
         revisit_pairs,
         revisiting_images,
         sample_for_loops,
+        with_revisit_warning,
     )
 
     whole = ImageSource(path)
@@ -91,18 +92,13 @@ def prepare_sequence(
         visit_pairs = int(np.count_nonzero(np.tril(gt, -1) & ~revisits))
     window = None
     if revisits is not None or name == "test":  # a training sequence needs one only to fit thresholds
-        gap = sampling.min_gap if sampling.min_gap is not None and min_gap is not None else min_gap
+        gap = sampling.min_gap if sampling.min_gap is not None else min_gap  # set only for a --min-gap
         window = choose_window(revisits, src.timestamps, min_gap=gap, window_s=window_s, given_gap=min_gap)
     if revisits is not None and sampling.revisiting is None and revisits.any():
         # a ground truth over the sampled images only: nothing to densify with
-        n_rev = revisiting_images(revisits, window.gap)
-        warning = None
-        if n_rev < MIN_REVISITS:
-            warning = (f"{name}: only {n_rev} images revisit an earlier one outside the exclusion window, fewer "
-                       f"than the {MIN_REVISITS} that measure loop closure, and the ground truth covers only the "
-                       f"images sampled, so no denser sampling can be chosen: recall at 100% precision and AUC "
-                       f"rest on {n_rev} queries; read their 95% confidence intervals")
-        sampling = Sampling(sampling.indices, sampling.how, n_rev, warning)
+        sampling = with_revisit_warning(
+            Sampling(sampling.indices, sampling.how, revisiting_images(revisits, window.gap)), name, MIN_REVISITS,
+            "and the ground truth covers only the images sampled, so no denser sampling can be chosen")
     return Prepared(src, sampling, revisits, visit_pairs, window)
 
 

@@ -150,19 +150,28 @@ def pr_curve(scores: np.ndarray, gt: np.ndarray, min_gap: int = 1, *, floor: flo
     """
     score, correct, positive = decisions(scores, gt, min_gap)
     n_pos = int(positive.sum())
-    keep = np.isfinite(score) & (score > floor)
-    s, c = score[keep], correct[keep]
-    order = np.argsort(-s, kind="stable")
-    s, c = s[order], c[order]
-    tp = np.cumsum(c)
-    fp = np.cumsum(~c)
-    last = np.flatnonzero(np.r_[s[1:] != s[:-1], True]) if len(s) else np.zeros(0, dtype=np.int64)
-    tp, fp, thr = tp[last], fp[last], s[last]
+    thr, tp, fp = _sweep(score, correct, np.ones((1, len(score))), floor)
+    tp, fp = tp[0], fp[0]
     precision = tp / np.maximum(tp + fp, 1)
     recall = tp / n_pos if n_pos else np.full(len(tp), np.nan)
     if n_pos == 0:
         log.warning("ground truth has no loop among the candidate pairs: recall is undefined")
     return PRCurve(thr, precision.astype(np.float64), np.asarray(recall, dtype=np.float64), n_pos)
+
+
+def _sweep(
+    score: np.ndarray, correct: np.ndarray, weights: np.ndarray, floor: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The threshold sweep of :func:`pr_curve` over weighted query sets: the distinct best
+    scores above ``floor``, descending, (K,), and the weighted true and false acceptances at
+    each, (B, K), for ``weights`` (B, n) (how many times each query counts in each set)."""
+    keep = np.isfinite(score) & (score > floor)
+    s = np.asarray(score)[keep]
+    order = np.argsort(-s, kind="stable")
+    s, c = s[order], np.asarray(correct, dtype=bool)[keep][order]
+    wk = np.asarray(weights, dtype=np.float64)[:, keep][:, order]
+    last = np.flatnonzero(np.r_[s[1:] != s[:-1], True]) if len(s) else np.zeros(0, dtype=np.int64)
+    return s[last], np.cumsum(wk * c, axis=1)[:, last], np.cumsum(wk * ~c, axis=1)[:, last]
 
 
 def curve_figures(
@@ -177,18 +186,11 @@ def curve_figures(
     """
     w = np.atleast_2d(np.asarray(weights, dtype=np.float64))
     n_pos = w @ np.asarray(positive, dtype=np.float64)
-    keep = np.isfinite(score) & (score > floor)
-    s = np.asarray(score)[keep]
-    order = np.argsort(-s, kind="stable")
-    s, c = s[order], np.asarray(correct, dtype=bool)[keep][order]
-    wk = w[:, keep][:, order]
+    _, tp, fp = _sweep(score, correct, w, floor)
     nan = np.full(len(w), np.nan)
-    if len(s) == 0:
+    if tp.shape[1] == 0:
         zero = np.where(n_pos > 0, 0.0, nan)
         return zero, zero
-    last = np.flatnonzero(np.r_[s[1:] != s[:-1], True])
-    tp = np.cumsum(wk * c, axis=1)[:, last]
-    fp = np.cumsum(wk * ~c, axis=1)[:, last]
     precision = tp / np.maximum(tp + fp, 1.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         recall = tp / n_pos[:, None]

@@ -216,10 +216,10 @@ def sample_for_loops(
 
     base = Sampling(base.indices, base.how, count(base.indices))
     if stride is not None or every_s is not None or met(base):
-        return _with_warning(base, name, min_revisits, "as given")
+        return with_revisit_warning(base, name, min_revisits, "as given")
     by_motion = _has_poses(poses_wc, n_frames)
     if not by_motion and timestamps is None:  # an image folder: every image already
-        return _with_warning(base, name, min_revisits, "")
+        return with_revisit_warning(base, name, min_revisits, "")
     tried = [base]
     for k in range(1, DENSIFY_STEPS + 2):
         if len(tried[-1].indices) == n_frames:
@@ -249,7 +249,7 @@ def sample_for_loops(
         first = f"{SAMPLE_DIST_M:g} m / {SAMPLE_ANGLE_DEG:g} deg" if by_motion else f"{SAMPLE_EVERY_S:g} s"
         chosen = Sampling(chosen.indices, f"{chosen.how}; denser than {first}, which kept only {' and '.join(why)}",
                           chosen.revisiting, min_gap=gap_for(chosen.indices))
-    return _with_warning(chosen, name, min_revisits, "which keeps every frame" if len(chosen.indices) == n_frames
+    return with_revisit_warning(chosen, name, min_revisits, "which keeps every frame" if len(chosen.indices) == n_frames
                          else "the spacing with the most of them, down to every frame")
 
 
@@ -258,7 +258,9 @@ def rescale_gap(gap: int, n_from: int, n_to: int) -> int:
     return max(1, int(np.ceil(gap * n_to / max(1, n_from) - 1e-9)))
 
 
-def _with_warning(s: Sampling, name: str, min_revisits: int, why: str) -> Sampling:
+def with_revisit_warning(s: Sampling, name: str, min_revisits: int, why: str) -> Sampling:
+    """``s`` with a warning when fewer than ``min_revisits`` of its images revisit; ``why``
+    says what the spacing is (or ""), after the spacing's name."""
     if s.revisiting is None or s.revisiting >= min_revisits:
         return s
     warning = (f"{name}: only {s.revisiting} images revisit an earlier one outside the exclusion window with "
