@@ -780,7 +780,7 @@ def main() -> int:
                    "../shared/peer/ORBvoc_real_k10L6.txt.gz beside the repository is the independent one)")
     p.add_argument("--gate", action="store_true",
                    help="check the vocabulary: run ORB-SLAM3 only and print frames tracked / given per run; exit "
-                   f"status 0 when the median run tracks at least {GATE_SHARE:.0%} of them, else 1")
+                   f"status 0 when the median run tracks at least {GATE_SHARE * 100:.0f}%% of them, else 1")
     p.add_argument("--ours-args", default="", help="extra arguments for orbslam-hgcn run, e.g. '--sequential'")
     p.add_argument("--peer-bow-level", type=int, default=None, metavar="N",
                    help="tree level at which ORB-SLAM3 groups features for BoW matching; it uses the "
