@@ -294,7 +294,8 @@ _SYNTH_DESCRIPTION = """\
 Render a synthetic sequence with exact ground truth into OUT: an office (a loop round a desk,
 or a replayed TUM trajectory) or a KITTI-like street drive, in the TUM RGB-D layout (rgb/,
 rgb.txt, groundtruth.txt) or the KITTI odometry layout (sequences/NN/image_0/, times.txt,
-calib.txt, poses/NN.txt), with camera.yaml and scene.json (loop_gt.npy, depth on request).
+calib.txt, poses/NN.txt), with camera.yaml and scene.json (loop_gt.npy, depth on request);
+frames as PNG files, or JPEG files with --image-format jpg.
 
 presets (--preset NAME; options given beside a preset override its values):
   office_loop      the demo's 30 s office loop, clean, with loop_gt.npy
@@ -344,7 +345,12 @@ def _add_synth(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--exposure-step-interval", type=float, help="mean seconds between exposure steps (default 4)")
     p.add_argument("--exposure-settle", type=int,
                    help="frames the auto-exposure takes to undo a step, to 5%% (default 4)")
-    p.add_argument("--jpeg-quality", type=int, help="JPEG encode/decode at this quality, 1-100 (default 0: none)")
+    p.add_argument("--jpeg-quality", type=int,
+                   help="JPEG encode/decode at this quality, 1-100 (default 0: none); with --image-format jpg, "
+                   "the quality of the JPEG files (default 90)")
+    p.add_argument("--image-format", choices=("png", "jpg"),
+                   help="frame files: png (default) or jpg, written at --jpeg-quality (the one compression: "
+                   "no JPEG round trip before writing); beside a preset, changes only the format")
     p.add_argument("--fog", type=float,
                    help="stretches of fog and flat light (one per 25 s, 3-6 s long): the contrast lost at the "
                    "scene's typical depth, e.g. 0.7 (default 0)")
@@ -376,7 +382,7 @@ def _run_synth(args: argparse.Namespace) -> int:
         "exposure_settle": args.exposure_settle, "jpeg_quality": args.jpeg_quality, "fog": args.fog,
         "seed": args.seed, "scene_seed": args.scene_seed, "texture_seed": args.texture_seed,
         "repeated_texture": args.repeated_texture, "texel_scale": args.texel_scale, "loop_gt": args.loop_gt,
-        "depth": args.depth, "laps": args.laps,
+        "depth": args.depth, "laps": args.laps, "image_format": args.image_format,
     }
     from orbslam_hgcn.outputs import check_output_folder
 

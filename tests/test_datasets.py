@@ -474,3 +474,28 @@ def test_factory_detection_and_errors(tmp_path, tum_layout, euroc_layout):
         detect_kind(tmp_path)
     with pytest.raises(DatasetError, match=r"unknown dataset kind 'bag'"):
         open_sequence("bag", tmp_path)
+
+
+def test_kitti_reads_jpeg_images_and_refuses_mixed_or_missing_ones(tmp_path):
+    folder, imgs, stamps, _ = _write_kitti(tmp_path, np.random.default_rng(6))
+    img_dir = folder / "image_0"
+    for i, im in enumerate(imgs):
+        (img_dir / f"{i:06d}.png").unlink()
+        cv2.imwrite(str(img_dir / f"{i:06d}.jpg"), im, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    seq = open_sequence(None, folder)
+    assert isinstance(seq, KittiSequence) and len(seq) == 4
+    assert (seq.camera.width, seq.camera.height) == (80, 60)
+    np.testing.assert_allclose(seq.timestamps, stamps, atol=1e-9)
+    for f, p in zip(seq, sorted(img_dir.iterdir())):
+        np.testing.assert_array_equal(f.image, cv2.imread(str(p), cv2.IMREAD_GRAYSCALE))
+    cv2.imwrite(str(img_dir / "000004.png"), imgs[0])
+    with pytest.raises(DatasetError, match=r"image_0: mixes image formats \(4 \.jpg, 1 \.png\)"):
+        KittiSequence(folder)
+    (img_dir / "000004.png").unlink()
+    (img_dir / "000003.jpg").unlink()
+    with pytest.raises(DatasetError, match=r"image_0: holds 3 JPEG images but .*times\.txt lists 4"):
+        KittiSequence(folder)
+    for p in img_dir.iterdir():
+        p.unlink()
+    with pytest.raises(DatasetError, match=r"image_0: holds no PNG or JPEG images .* lists 4"):
+        KittiSequence(folder)

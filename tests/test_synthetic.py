@@ -423,3 +423,79 @@ def test_loop_laps_pass_beside_each_other_and_close_after_the_last():
     assert gt[np.arange(300, 600), np.arange(300)].all()
     with pytest.raises(ConfigError, match="laps"):
         SynthOptions(trajectory="replay", gt="x.txt", laps=2).validate()
+
+
+def _frames(folder, sub):
+    return sorted((folder / sub).iterdir())
+
+
+def test_jpg_frames_are_the_one_compression_and_read_back(tmp_path):
+    """--image-format jpg writes .jpg files at --jpeg-quality (90 by default), the encoding
+    of the very frame the PNG render holds (no JPEG round trip before it), which the TUM and
+    KITTI readers open with the PNG render's frames and timestamps."""
+    from orbslam_hgcn.datasets import open_sequence
+
+    args = ["synth", "--frames", "2", "--texel-scale", "8"]
+    assert main(args + ["--out", str(tmp_path / "png")]) == 0
+    assert main(args + ["--out", str(tmp_path / "q90"), "--image-format", "jpg"]) == 0
+    assert main(args + ["--out", str(tmp_path / "q60"), "--image-format", "jpg", "--jpeg-quality", "60"]) == 0
+    png = _frames(tmp_path / "png", "rgb")
+    for name, quality in (("q90", 90), ("q60", 60)):
+        meta = json.loads((tmp_path / name / "scene.json").read_text())
+        assert meta["image_format"] == "jpg" and meta["options"]["jpeg_quality"] == quality
+        jpgs = _frames(tmp_path / name, "rgb")
+        assert [p.suffix for p in jpgs] == [".jpg", ".jpg"] and [p.stem for p in jpgs] == [p.stem for p in png]
+        listed = [ln.split()[1] for ln in (tmp_path / name / "rgb.txt").read_text().splitlines() if ln[0] != "#"]
+        assert listed == [f"rgb/{p.name}" for p in jpgs]
+        for p, j in zip(png, jpgs):
+            ref = cv2.imread(str(p))
+            ok, buf = cv2.imencode(".jpg", ref, [cv2.IMWRITE_JPEG_QUALITY, quality])
+            assert ok and j.read_bytes() == buf.tobytes()  # this quality, and only this compression
+            img = cv2.imread(str(j))
+            assert img.shape == (480, 640, 3)
+            mad = float(np.abs(img.astype(np.float32) - ref).mean())
+            assert (0.3 < mad < 3.0) if quality == 90 else mad > 1.0, (name, mad)
+    assert json.loads((tmp_path / "png" / "scene.json").read_text())["image_format"] == "png"
+    # Read back: the same frames and timestamps as the PNG render, decoded at its size.
+    ref, seq = open_sequence(None, tmp_path / "png"), open_sequence(None, tmp_path / "q90")
+    assert type(seq).__name__ == "TumSequence" and len(seq) == len(ref) == 2
+    np.testing.assert_array_equal(seq.timestamps, ref.timestamps)
+    diff = np.abs(seq[1].image.astype(np.float32) - ref[1].image).mean()
+    assert seq[1].image.shape == (480, 640) and 0 < diff < 3
+    # The KITTI layout: image_0/NNNNNN.jpg, grey.
+    kitti = args + ["--layout", "kitti"]
+    assert main(kitti + ["--out", str(tmp_path / "kpng")]) == 0
+    assert main(kitti + ["--out", str(tmp_path / "kjpg"), "--image-format", "jpg"]) == 0
+    kdir = tmp_path / "kjpg" / "sequences" / "00"
+    assert [p.name for p in _frames(kdir, "image_0")] == ["000000.jpg", "000001.jpg"]
+    assert cv2.imread(str(kdir / "image_0" / "000000.jpg"), cv2.IMREAD_UNCHANGED).shape == (480, 640)
+    ref, seq = open_sequence(None, tmp_path / "kpng" / "sequences" / "00"), open_sequence(None, kdir)
+    assert type(seq).__name__ == "KittiSequence" and len(seq) == len(ref) == 2
+    np.testing.assert_array_equal(seq.timestamps, ref.timestamps)
+    assert seq.camera == ref.camera and seq[0].image.shape == (480, 640)
+    assert 0 < np.abs(seq[0].image.astype(np.float32) - ref[0].image).mean() < 3
+
+
+def test_jpg_renders_are_cached_and_other_formats_refused(tmp_path, capsys):
+    """A complete JPEG render is kept as it is (the "already rendered" check finds its .jpg
+    frames); the same sequence asked as PNG is another one: refused without --force."""
+    from orbslam_hgcn.synth.sequence import synth_options
+
+    for layout, times in (("tum", "rgb.txt"), ("kitti", "sequences/00/times.txt")):
+        out = tmp_path / layout
+        args = ["synth", "--out", str(out), "--frames", "2", "--texel-scale", "8", "--layout", layout]
+        assert main(args + ["--image-format", "jpg"]) == 0
+        stamp = (out / times).stat().st_mtime_ns
+        assert main(args + ["--image-format", "jpg"]) == 0
+        assert (out / times).stat().st_mtime_ns == stamp
+        capsys.readouterr()
+        assert main(args) == 2 and "not empty" in capsys.readouterr().err
+        assert main(args + ["--force"]) == 0
+        assert not list(out.rglob("*.jpg")) and len(list(out.rglob("*.png"))) == 2
+    # Beside a preset, only the format changes: the preset's quality is the files' quality.
+    hard = synth_options("fr3_replay_hard", frames=5)
+    jpg = synth_options("fr3_replay_hard", frames=5, image_format="jpg")
+    assert jpg == dataclasses.replace(hard, image_format="jpg") and jpg.jpeg_quality == 75
+    assert SynthOptions(image_format="jpg").jpeg_quality == 90 and SynthOptions().jpeg_quality == 0
+    with pytest.raises(ConfigError, match="image format"):
+        SynthOptions(image_format="gif").validate()

@@ -3,7 +3,7 @@ Vision Benchmark Suite", CVPR 2012), read as a monocular sequence of the left gr
 
 Layout (as unpacked from ``data_odometry_gray.zip`` and ``data_odometry_poses.zip``)::
 
-    dataset/sequences/NN/image_0/000000.png ...   # rectified grayscale images
+    dataset/sequences/NN/image_0/000000.png ...   # rectified grayscale images (or .jpg)
     dataset/sequences/NN/times.txt                # one timestamp (s) per image
     dataset/sequences/NN/calib.txt                # "P0: p00 p01 ... p23" projection matrices
     dataset/poses/NN.txt                          # optional: 12 values per image
@@ -34,6 +34,9 @@ from .base import ImageListSequence, data_lines, parse_floats, require_dir, reso
 log = logging.getLogger(__name__)
 
 DEFAULT_FPS = 10.0  # KITTI's cameras are triggered by the laser scanner at about 10 Hz
+# The image files a sequence may hold, all of one format: KITTI's PNG, or JPEG (a camera's
+# or a synthetic render's); suffix -> format name.
+FRAME_SUFFIXES = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}
 
 
 def read_calib(path: Path) -> dict[str, np.ndarray]:
@@ -114,10 +117,8 @@ class KittiSequence(ImageListSequence):
         img_dir = require_dir(folder / image_dir, "KITTI image")
         stamps = read_times(folder / "times.txt")
         n = len(stamps)
-        paths = [img_dir / f"{i:06d}.png" for i in range(n)]
-        n_files = sum(1 for p in img_dir.iterdir() if p.suffix == ".png")
-        if n_files != n:
-            raise DatasetError(f"{img_dir}: holds {n_files} PNG images but {folder / 'times.txt'} lists {n}")
+        suffix = self._frame_suffix(img_dir, folder / "times.txt", n)
+        paths = [img_dir / f"{i:06d}{suffix}" for i in range(n)]
 
         cam = resolve_camera(camera)
         if cam is None:
@@ -144,6 +145,26 @@ class KittiSequence(ImageListSequence):
             ground_truth=gt,
             color=color,
         )
+
+    @staticmethod
+    def _frame_suffix(img_dir: Path, times: Path, n: int) -> str:
+        """The suffix of the sequence's images (.png, .jpg or .jpeg), which must be all of
+        one kind and as many as ``times`` lists (``n``); a DatasetError otherwise."""
+        counts: dict[str, int] = {}
+        for p in img_dir.iterdir():
+            if p.suffix in FRAME_SUFFIXES:
+                counts[p.suffix] = counts.get(p.suffix, 0) + 1
+        if not counts:
+            raise DatasetError(f"{img_dir}: holds no PNG or JPEG images ({', '.join(FRAME_SUFFIXES)}) but {times} "
+                               f"lists {n}")
+        if len(counts) > 1:
+            found = ", ".join(f"{c} {s}" for s, c in sorted(counts.items()))
+            raise DatasetError(f"{img_dir}: mixes image formats ({found}); a sequence's images must be all PNG "
+                               "or all JPEG")
+        (suffix, n_files), = counts.items()
+        if n_files != n:
+            raise DatasetError(f"{img_dir}: holds {n_files} {FRAME_SUFFIXES[suffix]} images but {times} lists {n}")
+        return suffix
 
     @staticmethod
     def _calib_camera(calib_path: Path, image_dir: str, first: Path, stamps: np.ndarray) -> PinholeCamera:

@@ -21,7 +21,8 @@ In the order a camera applies them:
   ``1 +- a``, ``a`` uniform in [0.75, 1.25] times ``exposure_steps``, and the camera's
   exposure brings it back within 5 % over ``exposure_settle`` frames (exponentially).
 * the sensor noise and slow exposure drift of ``synthetic.CameraEffects``, rounding;
-* JPEG compression (``jpeg_quality``): encoded and decoded with OpenCV at that quality.
+* JPEG compression (``jpeg_quality``): encoded and decoded with OpenCV at that quality
+  (skipped when the frames are written as JPEG files, ``image_format="jpg"``).
 """
 
 from __future__ import annotations
@@ -167,7 +168,8 @@ class Degradations:
     """The degradations an options set asks for, over a sequence's time span [t0, t1].
 
     options: a ``SynthOptions`` (its fields ``fog``, ``vignetting``, ``exposure_steps``,
-    ``exposure_step_interval``, ``exposure_settle``, ``jpeg_quality``, ``seed``, ``fps``);
+    ``exposure_step_interval``, ``exposure_settle``, ``jpeg_quality``, ``seed``, ``fps``,
+    and ``image_format`` where it has one);
     ref_depth: the scene's typical depth (m) for the fog.
     """
 
@@ -196,4 +198,8 @@ class Degradations:
         return out
 
     def compress(self, img: np.ndarray) -> np.ndarray:
-        return jpeg(img, self.o.jpeg_quality) if self.o.jpeg_quality else img
+        """The in-memory JPEG round trip of ``jpeg_quality``; none when the frames are
+        written as JPEG files (``image_format="jpg"``), which are the compression."""
+        if not self.o.jpeg_quality or getattr(self.o, "image_format", "png") == "jpg":
+            return img
+        return jpeg(img, self.o.jpeg_quality)

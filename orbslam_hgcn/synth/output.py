@@ -36,16 +36,30 @@ OUTPUTS = ("rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.ya
 # zlib level 1 with run-length matching: ~25 % faster than plain level 1 and ~10 % smaller
 # on these frames (measured with OpenCV 5.0).
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
+IMAGE_FORMATS = ("png", "jpg")  # the frames' file formats (depth images are always 16-bit PNG)
+
+
+def frame_encoding(image_format: str = "png", jpeg_quality: int = 0) -> tuple[str, list[int]]:
+    """(file suffix, cv2.imwrite parameters) of the frames of an ``image_format`` render:
+    lossless PNG, or baseline JPEG at ``jpeg_quality`` (1-100)."""
+    if image_format == "jpg":
+        return ".jpg", [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
+    if image_format != "png":
+        raise ConfigError(f"image format must be one of {', '.join(IMAGE_FORMATS)}, not {image_format!r}")
+    return ".png", PNG_PARAMS
 
 
 class TumWriter:
-    """rgb/<timestamp>.png, rgb.txt, groundtruth.txt (and depth/, depth.txt, 5000 per metre)."""
+    """rgb/<timestamp>.png (or .jpg), rgb.txt, groundtruth.txt (and depth/, depth.txt, 5000
+    per metre, PNG)."""
 
     grey = False
 
-    def __init__(self, out: Path, stamps: np.ndarray, depth: bool):
+    def __init__(self, out: Path, stamps: np.ndarray, depth: bool, image_format: str = "png",
+                 jpeg_quality: int = 0):
         self.out = out
         self.depth = depth
+        self.ext, self.params = frame_encoding(image_format, jpeg_quality)
         self.names = [f"{t:.6f}" for t in stamps]
         if len(set(self.names)) != len(self.names):
             raise ConfigError("frame rate too high for 6-decimal timestamps")
@@ -58,7 +72,8 @@ class TumWriter:
         return self.out
 
     @staticmethod
-    def complete(out: Path, sequence: int = 0) -> bool:
+    def complete(out: Path, sequence: int = 0, image_format: str = "png") -> bool:
+        """Whether ``out`` holds every frame its rgb.txt lists (whatever their format)."""
         if not (out / "rgb.txt").is_file():
             return False
         listed = [ln.split()[1] for ln in (out / "rgb.txt").read_text().splitlines() if ln and ln[0] != "#"]
@@ -66,8 +81,8 @@ class TumWriter:
 
     def frame(self, k: int, img: np.ndarray, inv_depth: np.ndarray) -> None:
         name = self.names[k]
-        if not cv2.imwrite(str(self.out / "rgb" / f"{name}.png"), img, PNG_PARAMS):
-            raise DatasetError(f"{self.out / 'rgb'}: cannot write {name}.png")
+        if not cv2.imwrite(str(self.out / "rgb" / f"{name}{self.ext}"), img, self.params):
+            raise DatasetError(f"{self.out / 'rgb'}: cannot write {name}{self.ext}")
         if self.depth:
             z = np.where(inv_depth > 0, 5000.0 / np.maximum(inv_depth, 1e-9), 0.0)
             cv2.imwrite(str(self.out / "depth" / f"{name}.png"), np.clip(z + 0.5, 0, 65535).astype(np.uint16),
@@ -77,7 +92,7 @@ class TumWriter:
         out, names = self.out, self.names
         with (out / "rgb.txt").open("w", encoding="utf-8") as fh:
             fh.write("# synthetic colour images\n# timestamp filename\n")
-            fh.writelines(f"{n} rgb/{n}.png\n" for n in names)
+            fh.writelines(f"{n} rgb/{n}{self.ext}\n" for n in names)
         if self.depth:
             with (out / "depth.txt").open("w", encoding="utf-8") as fh:
                 fh.write("# synthetic depth images, 5000 per metre\n# timestamp filename\n")
@@ -87,17 +102,19 @@ class TumWriter:
 
 class KittiWriter:
     """sequences/NN/{image_0/, times.txt, calib.txt} and poses/NN.txt, as KITTI's odometry
-    benchmark lays them out; grey frames. Poses are T_wc with the first camera as the world
+    benchmark lays them out; grey frames (image_0/NNNNNN.png, or .jpg). Poses are T_wc with the first camera as the world
     (KITTI's convention), 12 row-major values, 10 significant digits. Depth (on request):
     sequences/NN/depth/, 16-bit, 256 per metre (KITTI's depth benchmark scale)."""
 
     grey = True
 
-    def __init__(self, out: Path, stamps: np.ndarray, depth: bool, sequence: int = 0):
+    def __init__(self, out: Path, stamps: np.ndarray, depth: bool, sequence: int = 0, image_format: str = "png",
+                 jpeg_quality: int = 0):
         self.out = out
         self.seq = out / "sequences" / f"{sequence:02d}"
         self.sequence = sequence
         self.depth = depth
+        self.ext, self.params = frame_encoding(image_format, jpeg_quality)
         (self.seq / "image_0").mkdir(parents=True, exist_ok=True)
         if depth:
             (self.seq / "depth").mkdir(exist_ok=True)
@@ -107,16 +124,18 @@ class KittiWriter:
         return self.seq
 
     @staticmethod
-    def complete(out: Path, sequence: int = 0) -> bool:
+    def complete(out: Path, sequence: int = 0, image_format: str = "png") -> bool:
+        """Whether ``out`` holds every frame its times.txt lists, as ``image_format`` files."""
         seq = out / "sequences" / f"{sequence:02d}"
+        ext = frame_encoding(image_format)[0]
         if not (seq / "times.txt").is_file() or not (out / "poses" / f"{sequence:02d}.txt").is_file():
             return False
         n = sum(1 for ln in (seq / "times.txt").read_text().splitlines() if ln.strip())
-        return n > 0 and all((seq / "image_0" / f"{k:06d}.png").is_file() for k in range(n))
+        return n > 0 and all((seq / "image_0" / f"{k:06d}{ext}").is_file() for k in range(n))
 
     def frame(self, k: int, img: np.ndarray, inv_depth: np.ndarray) -> None:
-        if not cv2.imwrite(str(self.seq / "image_0" / f"{k:06d}.png"), img, PNG_PARAMS):
-            raise DatasetError(f"{self.seq / 'image_0'}: cannot write {k:06d}.png")
+        if not cv2.imwrite(str(self.seq / "image_0" / f"{k:06d}{self.ext}"), img, self.params):
+            raise DatasetError(f"{self.seq / 'image_0'}: cannot write {k:06d}{self.ext}")
         if self.depth:
             z = np.where(inv_depth > 0, 256.0 / np.maximum(inv_depth, 1e-9), 0.0)
             cv2.imwrite(str(self.seq / "depth" / f"{k:06d}.png"), np.clip(z + 0.5, 0, 65535).astype(np.uint16),
@@ -136,10 +155,11 @@ class KittiWriter:
             fh.writelines(" ".join(f"{v:.9e}" for v in T[:3].ravel()) + "\n" for T in rel)
 
 
-def make_writer(layout: str, out: Path, stamps: np.ndarray, depth: bool, sequence: int = 0):
+def make_writer(layout: str, out: Path, stamps: np.ndarray, depth: bool, sequence: int = 0,
+                image_format: str = "png", jpeg_quality: int = 0):
     if layout == "kitti":
-        return KittiWriter(out, stamps, depth, sequence)
-    return TumWriter(out, stamps, depth)
+        return KittiWriter(out, stamps, depth, sequence, image_format, jpeg_quality)
+    return TumWriter(out, stamps, depth, image_format, jpeg_quality)
 
 
 def writer_class(layout: str):
@@ -162,7 +182,11 @@ def existing_render(out: Path, meta_options: dict, writer=TumWriter, sequence: i
             old = json.loads(meta.read_text(encoding="utf-8")).get("options")
         except (OSError, json.JSONDecodeError, AttributeError):
             old = None
-    complete = old is not None and writer.complete(out, sequence)
+    # Complete by the options it was rendered with (the frames' format among them: a PNG
+    # render asked for as JPEG is another, complete sequence, not an interrupted one).
+    old_format = old.get("image_format", "png") if isinstance(old, dict) else "png"
+    complete = (old is not None and old_format in IMAGE_FORMATS
+                and writer.complete(out, sequence, old_format))
     if complete and old == meta_options:
         return "same"
     if not complete and all(p.name in OUTPUTS for p in out.iterdir()):

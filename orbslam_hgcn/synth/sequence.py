@@ -2,7 +2,7 @@
 
 ``render_sequence(out_dir, SynthOptions(...))`` writes, in the TUM layout (default)::
 
-    out_dir/rgb/<timestamp>.png    640x480 colour frames (BGR PNG)
+    out_dir/rgb/<timestamp>.png    640x480 colour frames (BGR PNG; .jpg with image_format="jpg")
     out_dir/rgb.txt                "timestamp rgb/<timestamp>.png" per frame
     out_dir/groundtruth.txt        TUM poses T_wc of every frame (mid-exposure)
     out_dir/camera.yaml            intrinsics (default: TUM freiburg3, 535.4 539.2 320.1 247.6)
@@ -13,7 +13,7 @@
 and in the KITTI odometry layout (``layout="kitti"``, grey frames; what ``KittiSequence``
 reads)::
 
-    out_dir/sequences/NN/image_0/000000.png ...   grey frames
+    out_dir/sequences/NN/image_0/000000.png ...   grey frames (.jpg with image_format="jpg")
     out_dir/sequences/NN/times.txt                seconds from the first frame
     out_dir/sequences/NN/calib.txt                P0..P3 (P1, P3: a 0.54 m stereo baseline)
     out_dir/sequences/NN/depth/                   16-bit depth, 256 per metre (with ``depth``)
@@ -29,6 +29,10 @@ sub-frame renders spread over the shutter time, or each pixel blurred along its 
 motion), vignetting, auto-exposure steps, exposure drift (slow gain and offset changes),
 Gaussian sensor noise, rounding, JPEG compression. The same options give byte-identical
 files.
+
+Frames are PNG files (lossless; ``jpeg_quality`` then round-trips each frame through JPEG
+in memory) or, with ``image_format="jpg"``, JPEG files at ``jpeg_quality`` (90 when not
+given): the file is then the one compression, as a camera that delivers JPEG frames.
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.synth.degrade import Degradations, flow_blur
 from orbslam_hgcn.synth.layout import DeskSpec, build_scene
 from orbslam_hgcn.synth.output import (
+    IMAGE_FORMATS,
     existing_render,
     install,
     make_writer,
@@ -69,6 +74,7 @@ MIN_LOOP_S = 10.0  # shortest loop period (s): faster would not be a hand-held w
 KITTI_CAMERA = {"fx": 718.856, "fy": 718.856, "cx": 607.1928, "cy": 185.2157, "width": 1241, "height": 376,
                 "fps": 10.0}
 STREET_DURATION = 45.0  # default length of a street drive (s)
+JPEG_FILE_QUALITY = 90  # quality of JPEG frame files (image_format="jpg") when none is given
 STREET_TILE_M = 4.0  # tile edge of street surfaces (m): fewer draws over kilometres of surfaces
 REF_DEPTH = {"office": 1.5, "street": 15.0}  # typical depths (m), the fog's reference
 
@@ -112,9 +118,14 @@ class SynthOptions:
     exposure_steps: float = 0.0  # auto-exposure jumps of +-(0.75..1.25) x this (0.4: 30-50 %)
     exposure_step_interval: float = 4.0  # mean seconds between auto-exposure steps
     exposure_settle: int = 4  # frames the auto-exposure takes to undo a step (to 5 %)
-    jpeg_quality: int = 0  # JPEG encode/decode at this quality (1-100; 0: none)
+    jpeg_quality: int = 0  # JPEG encode/decode at this quality (1-100; 0: none); the files' quality with "jpg"
     fog: float = 0.0  # fog stretches: contrast lost at the scene's reference depth (0..1)
     laps: int = 1  # the generated loop: times round the desk, each lap beside the others
+    image_format: str = "png"  # frame files: "png", or "jpg" (at jpeg_quality, 90 when 0; no in-memory round trip)
+
+    def __post_init__(self):
+        if self.image_format == "jpg" and not self.jpeg_quality:
+            object.__setattr__(self, "jpeg_quality", JPEG_FILE_QUALITY)
 
     @property
     def camera(self) -> PinholeCamera:
@@ -149,6 +160,8 @@ class SynthOptions:
             raise ConfigError(f"laps must be at least 1, and more than one only for the office loop, not {self.laps}")
         if self.texel_scale <= 0:
             raise ConfigError(f"texel_scale must be positive, not {self.texel_scale}")
+        if self.image_format not in IMAGE_FORMATS:
+            raise ConfigError(f"image format must be one of {', '.join(IMAGE_FORMATS)}, not {self.image_format!r}")
 
 
 def street_options(**kw) -> SynthOptions:
@@ -332,7 +345,8 @@ def camera_frame(renderer, poses, t: float, k: int, options: SynthOptions, effec
                  degrade: Degradations, grey: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Frame k at time t as the camera delivers it: ((H, W[, 3]) uint8 image, (H, W) float32
     inverse depth). Render (with fog) and blur, grey (KITTI layout), vignetting and
-    exposure steps, exposure drift and noise, rounding, JPEG."""
+    exposure steps, exposure drift and noise, rounding, JPEG (in memory, for PNG files only:
+    JPEG files are the compression themselves)."""
     img, inv_depth = render_frame(renderer, poses, t, options, degrade.scene_post(t))
     if grey:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -433,7 +447,8 @@ def _render_into(out: Path, options: SynthOptions, meta_options: dict, progress:
     renderer = make_renderer(scene, options, progress)
     effects = CameraEffects(options)
     degrade = Degradations(options, cam, float(stamps[0]), float(stamps[-1]), REF_DEPTH[options.scene])
-    writer = make_writer(options.layout, out, stamps, options.depth, options.kitti_sequence)
+    writer = make_writer(options.layout, out, stamps, options.depth, options.kitti_sequence, options.image_format,
+                         options.jpeg_quality)
     gt_poses = poses(stamps)
     for k, t in enumerate(tqdm(stamps.tolist(), desc="synth", unit="frame", disable=not progress)):
         writer.frame(k, *camera_frame(renderer, poses, t, k, options, effects, degrade, writer.grey))
@@ -443,7 +458,8 @@ def _render_into(out: Path, options: SynthOptions, meta_options: dict, progress:
         np.save(out / "loop_gt.npy", loop_ground_truth(gt_poses, options.loop_gt_dist, options.loop_gt_angle))
     texture_seed = options.scene_seed if options.texture_seed is None else options.texture_seed
     meta = {"generator": "orbslam_hgcn synth", "options": meta_options, "texture_seed": texture_seed,
-            "frames": len(stamps), "trajectory": traj_info, "scene": scene.layout}
+            "frames": len(stamps), "image_format": options.image_format, "trajectory": traj_info,
+            "scene": scene.layout}
     if options.layout == "kitti":
         meta["T_world_first_camera"] = gt_poses[0]  # KITTI poses are relative to the first camera
     (out / "scene.json").write_text(json.dumps(meta, indent=1, default=_json_default), encoding="utf-8")
