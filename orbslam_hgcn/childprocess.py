@@ -79,15 +79,17 @@ def _defer_sigterm(grace_s: float) -> None:
 
 def _serve(
     conn: Any, abort: Any, factory: Callable[..., Any], factory_args: tuple, nice: int,
-    term_grace_s: float = TERM_GRACE_S,
+    term_grace_s: float = TERM_GRACE_S, ready: Any = None,
 ) -> None:  # fmt: skip
     """Child process loop: answer ``(method, args, stoppable)`` requests until ``None`` or a
-    closed pipe."""
+    closed pipe; ``ready`` (an event) is set once the object is built."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     _defer_sigterm(term_grace_s)  # so is a SIGTERM sent to the process group
     if nice > 0 and hasattr(os, "nice"):
-        os.nice(nice)
+        os.nice(nice)  # where the parent could not (see ChildProcess._start)
     obj = factory(*factory_args)
+    if ready is not None:
+        ready.set()
     while True:
         try:
             msg = conn.recv()
@@ -135,6 +137,8 @@ class ChildProcess:
     ) -> None:
         self.name = name
         self.nice = int(nice)
+        # What the child adds to its own niceness: nothing where the parent sets it (os.setpriority).
+        self._child_nice = 0 if hasattr(os, "setpriority") else self.nice
         self.term_grace_s = float(term_grace_s)
         self.factory, self.factory_args = factory, factory_args
         self.error_type = error_type
@@ -144,11 +148,18 @@ class ChildProcess:
         self._proc: Any = None
         self._conn: Any = None
         self._abort: Any = None
+        self._ready: Any = None
         self.requests = 0
 
     @property
     def alive(self) -> bool:
         return self._proc is not None and self._proc.is_alive()
+
+    @property
+    def starting(self) -> bool:
+        """Started and alive, but its object not built yet (importing, loading kernels): a
+        request now would wait for that. Does not block."""
+        return self.alive and self._ready is not None and not self._ready.is_set()
 
     def start(self) -> ChildProcess:
         """Start the child (no-op when it runs)."""
@@ -156,17 +167,31 @@ class ChildProcess:
             self._start()
         return self
 
+    def _renice(self, pid: int) -> None:
+        """Add ``nice`` to the new child's niceness from here (Linux and other Unixes)."""
+        if self.nice <= 0 or self._child_nice > 0:  # nothing to add, or the child adds it
+            return
+        try:
+            os.setpriority(os.PRIO_PROCESS, pid, min(19, os.getpriority(os.PRIO_PROCESS, 0) + self.nice))
+        except (AttributeError, OSError):
+            pass  # the child will not know: see _child_nice
+
     def _start(self) -> None:
         if self.alive:
             return
         self._close_locked()
         parent, child = self._ctx.Pipe()
-        self._abort = self._ctx.Event()
+        self._abort, self._ready = self._ctx.Event(), self._ctx.Event()
         proc = self._ctx.Process(
-            target=_serve, args=(child, self._abort, self.factory, self.factory_args, self.nice, self.term_grace_s),
+            target=_serve,
+            args=(child, self._abort, self.factory, self.factory_args, self._child_nice, self.term_grace_s,
+                  self._ready),
             name=f"orbslam-{self.name}", daemon=True,
         )  # fmt: skip
         try:
+            # The niceness is given by the parent as soon as the child exists (_renice), so
+            # that its start-up (imports, compiled kernels: about a second of CPU) already
+            # yields to this process; the child adds it itself only where that failed.
             proc.start()
         except BaseException:
             parent.close()
@@ -174,6 +199,7 @@ class ChildProcess:
         finally:
             child.close()
         self._proc, self._conn = proc, parent
+        self._renice(proc.pid)
         log.debug("%s process started (pid %d)", self.name, self._proc.pid)
 
     def call(self, op: str, args: tuple = (), should_stop: StopFn = None, stoppable: bool = False) -> Any:

@@ -42,4 +42,40 @@ def failing_extraction(fail_at: int, die: bool, once: Path) -> type[ExtractionPr
                 nice=nice,
             )
 
+        def start(self) -> None:
+            # Waits for the child (a run does not): every frame's extraction is then a
+            # request to it, and request fail_at is frame fail_at's.
+            super().start()
+            self._child.call("ping")
+
     return _Failing
+
+
+class SlowExtractors(Extractors):
+    """The extraction process's object, built ``delay_s`` late (a child that starts slowly:
+    a loaded machine, a cold disk)."""
+
+    def __init__(self, configs, camera, delay_s: float) -> None:
+        import time
+
+        time.sleep(delay_s)
+        super().__init__(configs, camera)
+
+
+def extraction_process(delay_s: float, wait: bool, made: list) -> type[ExtractionProcess]:
+    """An ExtractionProcess class whose child builds its extractors ``delay_s`` late; with
+    ``wait`` its start() waits for the child (a run's does not). Each instance is appended
+    to ``made``."""
+
+    class _Slow(ExtractionProcess):
+        def __init__(self, configs, camera, nice: int = 0) -> None:
+            self._child = ChildProcess("extraction", SlowExtractors, (dict(configs), camera, delay_s), ExtractionError,
+                                       nice=nice)  # fmt: skip
+            made.append(self)
+
+        def start(self) -> None:
+            super().start()
+            if wait:
+                self._child.call("ping")
+
+    return _Slow

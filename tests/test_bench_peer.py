@@ -8,7 +8,6 @@ import gzip
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
@@ -50,6 +49,21 @@ def test_compare_run_is_void_when_either_side_tracks_under_95_percent(bp, ours_t
     for system, tracked in zip(("orbslam-hgcn", "ORB-SLAM3"), (ours_tracked, peer_tracked)):
         if system in failing:
             assert f"{system} tracked {tracked} of 160" in text
+
+
+def test_compare_run_counts_start_up_in_two_more_ratios(bp):
+    ours = {**row("orbslam-hgcn", 160, 40.0), "start_s": 1.0, "loop_s": 4.0}
+    peer = {**row("ORB-SLAM3", 159, 32.0), "start_s": 3.0, "loop_s": 5.0}
+    v = bp.compare_run(ours, peer, 160)
+    assert v["ratio"] == pytest.approx(1.25)
+    assert v["ratio_with_start"] == pytest.approx(5.0 / 5.0)  # ours 1 + 4 s against its 5 s span
+    assert v["ratio_both_start"] == pytest.approx(8.0 / 5.0)
+    text = bp.describe_verdict(v, 160)
+    assert "1.00x" in text and "1.60x" in text
+    med = bp.median_ratio([v, bp.compare_run({**ours, "start_s": 3.0}, peer, 160)], "ratio_with_start")
+    assert med[1] == [pytest.approx(1.0), pytest.approx(5.0 / 7.0)]
+    # a run without start-up figures (a failed timing read) gives the plain ratio only
+    assert "ratio_with_start" not in bp.compare_run(row("orbslam-hgcn", 160, 40.0), row("ORB-SLAM3", 159, 32.0), 160)
 
 
 def test_compare_run_is_void_when_a_system_failed(bp):

@@ -7,7 +7,6 @@ truth is synth's rule (camera centres within 0.5 m and optical axes within 30 de
 also marks every pair of neighbouring frames, one continuous visit.
 """
 
-import logging
 
 import numpy as np
 import pytest

@@ -3,6 +3,7 @@ settings come from, and that the first run after an install compiles the kernels
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import subprocess
@@ -108,3 +109,31 @@ def test_the_first_run_says_it_compiles_the_kernels_before_it_does(tmp_path):
     assert len(lines) == 1, r.stdout
     assert "first run after an install compiles them once" in lines[0] and "later runs load them" in lines[0]
     assert "pose_only" in lines[0] and "schur_ba" in lines[0] and "fast" in lines[0]
+
+
+def _cache_files(folder: Path) -> dict[str, int]:
+    """numba's cache files under ``folder`` (index and code) and their sizes and mtimes."""
+    return {str(p.relative_to(folder)): p.stat().st_mtime_ns for p in folder.rglob("*") if p.suffix in (".nbi", ".nbc")}
+
+
+def test_a_run_after_warming_the_kernels_compiles_nothing(tmp_path, kitti_sample):
+    """tools/setup.sh warms the kernels (``python -m orbslam_hgcn.runtime.kernels``); a user's
+    first run after it, on real KITTI frames with the default vocabulary (initialisation,
+    tracking, keyframes, local mapping and BA), finds every kernel it needs in the cache: it
+    writes nothing to numba's cache and does not say it compiles."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    warm = subprocess.run([sys.executable, "-m", "orbslam_hgcn.runtime.kernels"], env=env, capture_output=True,
+                          text=True, timeout=600, cwd=REPO)  # fmt: skip
+    assert warm.returncode == 0, warm.stderr
+    assert "compiled in" in warm.stdout
+    before = _cache_files(tmp_path / "numba")
+    assert len(before) > 40
+    r = subprocess.run([sys.executable, "-m", "orbslam_hgcn", "run", str(kitti_sample), "--out", str(tmp_path / "run"),
+                        "--max-frames", "30", "--no-progress", "--speed", "0"],
+                       env=env, capture_output=True, text=True, timeout=300, cwd=REPO)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    stats = json.loads((tmp_path / "run" / "stats.json").read_text())
+    assert stats["keyframes"] >= 5 and stats["timing_ms"]["local_ba_per_keyframe"]["count"] >= 3
+    assert "compiling the numba kernels" not in r.stderr + r.stdout
+    after = _cache_files(tmp_path / "numba")
+    assert {k: v for k, v in after.items() if before.get(k) != v} == {}

@@ -537,6 +537,31 @@ def test_unpaced_runs_lower_the_priority_of_the_work_done_ahead(seq):
                 ThreadsConfig(**{name: bad})
 
 
+def test_a_run_extracts_here_until_its_extraction_process_is_ready(seq, monkeypatch):
+    """The run does not wait for the extraction process to start: it extracts the first
+    frames itself meanwhile, and every frame gets the same keypoints either way, so the
+    poses are those of a run that waited for the process before its first frame."""
+    import orbslam_hgcn.runtime.system as system_module
+
+    from fault_fixtures import extraction_process
+
+    trajectories, requests = {}, {}
+    for wait in (True, False):
+        made: list = []
+        monkeypatch.setattr(system_module, "ExtractionProcess", extraction_process(0.5, wait, made))
+        system = System(seq.camera, _threads(speed=0.0), sequential=False)
+        system.run(seq, 80, progress=False)
+        trajectories[wait] = system.camera_trajectory()
+        requests[wait] = made[0]._child.requests
+        _assert_nothing_left()
+    assert requests[True] >= 80  # every frame (and a ping) went to the process
+    assert 0 < requests[False] < 75  # the first frames, a second's worth at least, were extracted here
+    waited, not_waited = trajectories[True], trajectories[False]
+    assert len(waited) > 10
+    np.testing.assert_array_equal(not_waited.timestamps, waited.timestamps)
+    np.testing.assert_array_equal(not_waited.poses, waited.poses)
+
+
 def test_a_run_leaves_objects_frozen_by_the_caller_frozen(seq):
     """A caller that froze its own objects (gc.freeze) finds them frozen after a run: an
     unreachable cycle frozen before the run outlives a collection after it."""

@@ -23,8 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tqdm.contrib.logging import logging_redirect_tqdm
-
 from orbslam_hgcn.config import VocabularyConfig, dataset_settings, load_camera, load_yaml, resolve_config
 from orbslam_hgcn.datasets import detect_kind, open_sequence
 from orbslam_hgcn.errors import FrameError, OrbslamError, StageError, VocabularyError
@@ -257,6 +255,8 @@ def run_dataset(
         viz = attach_live_viz(system, *rerun_sink, out=out, config=config, name=sequence.name)
     end, crash = RunEnd(), None
     t_run = time.perf_counter()
+    from tqdm.contrib.logging import logging_redirect_tqdm  # 40 ms of imports: not before it is needed
+
     with logging_redirect_tqdm():
         try:
             summary = system.run(sequence, max_frames, progress=progress, on_bad_frame=on_bad_frame)

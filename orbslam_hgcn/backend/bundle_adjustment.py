@@ -23,8 +23,8 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
-import gtsam
 import numpy as np
 
 from orbslam_hgcn.backend.problem import BAProblem, BAResult, as_problem
@@ -33,11 +33,16 @@ from orbslam_hgcn.backend.schur_ba import schur_bundle_adjustment
 from orbslam_hgcn.config import BackendConfig
 from orbslam_hgcn.geometry.se3 import inv_T
 
+# gtsam is imported inside the functions that solve with it: a run that never does (no loop,
+# local BA compiled) does not spend its start-up importing it.
+if TYPE_CHECKING:
+    import gtsam
+
 log = logging.getLogger(__name__)
 
-# A fixed pose is pinned by a prior this tight; NonlinearEqualityPose3 (a constrained noise
-# model) makes every elimination about ten times slower in gtsam 4.3.
-_FIXED_POSE_NOISE = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+# A fixed pose is pinned by a prior this tight (sigma); NonlinearEqualityPose3 (a constrained
+# noise model) makes every elimination about ten times slower in gtsam 4.3.
+_FIXED_POSE_SIGMA = 1e-6
 
 
 def observation_chi2(
@@ -58,6 +63,7 @@ def _run_lm(
     """Levenberg-Marquardt one iteration at a time, with gtsam's default convergence test
     (relative or absolute error decrease below 1e-5). None when stopped before the first.
     ordering: elimination order (None: gtsam's COLAMD)."""
+    import gtsam
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
     if ordering is not None:
@@ -87,6 +93,7 @@ def _optimise(
     should_stop: Callable[[], bool] | None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One LM run over the active observations; returns updated (T_cw, points)."""
+    import gtsam
     n_kf, n_pt = len(p.T_cw), len(p.points)
     T_cw, points = p.T_cw.copy(), p.points.copy()
     # Points need two active observations to be determined; poses need at least one.
@@ -97,6 +104,7 @@ def _optimise(
     kf_used = np.zeros(n_kf, dtype=bool)
     kf_used[p.obs_kf[use]] = True
     pt_used = np.flatnonzero(np.bincount(p.obs_pt[use], minlength=n_pt) > 0)
+    fixed_noise = gtsam.noiseModel.Isotropic.Sigma(6, _FIXED_POSE_SIGMA)
     cal = gtsam.Cal3_S2(p.K[0, 0], p.K[1, 1], 0.0, p.K[0, 2], p.K[1, 2])
     delta = float(np.sqrt(cfg.chi2_mono))
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -104,7 +112,7 @@ def _optimise(
         pose = gtsam.Pose3(inv_T(T_cw[i]))
         values.insert(int(i), pose)
         if p.fixed[i]:
-            graph.add(gtsam.PriorFactorPose3(int(i), pose, _FIXED_POSE_NOISE))
+            graph.add(gtsam.PriorFactorPose3(int(i), pose, fixed_noise))
     for j in pt_used:
         values.insertPoint3(int(n_kf + j), points[j])
     o_kf, o_pt, uv, info = p.obs_kf[use], p.obs_pt[use], p.uv[use], p.inv_sigma2[use]

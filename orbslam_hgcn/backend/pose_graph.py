@@ -18,18 +18,24 @@ compares with X_i^-1 X_j.
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
-import gtsam
 import numpy as np
 
 from orbslam_hgcn.config import BackendConfig
 from orbslam_hgcn.geometry.se3 import inv_S
+
+# gtsam is imported inside the functions that solve with it: a run that never does (no loop,
+# local BA compiled) does not spend its start-up importing it.
+if TYPE_CHECKING:
+    import gtsam
 
 log = logging.getLogger(__name__)
 
 
 def to_gtsam(S: np.ndarray) -> gtsam.Similarity3:
     """gtsam Similarity3 of a (4, 4) ``[[s R, t], [0, 1]]`` (p -> s R p + t)."""
+    import gtsam
     S = np.asarray(S, dtype=np.float64)
     s = float(np.cbrt(np.linalg.det(S[:3, :3])))
     R = S[:3, :3] / s
@@ -83,6 +89,7 @@ def optimize_essential_graph(
     weights: (E,) information scale per edge (default 1: ORB-SLAM's identity information).
     Returns (K, 4, 4) optimised S_cw.
     """
+    import gtsam
     cfg = config or BackendConfig()
     S_cw = np.asarray(S_cw, dtype=np.float64).reshape(-1, 4, 4)
     edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)

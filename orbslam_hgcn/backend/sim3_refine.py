@@ -29,12 +29,16 @@ baseline the reprojection terms outweigh the prior.
 from __future__ import annotations
 
 import logging
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
-import gtsam
 import numpy as np
 
 from orbslam_hgcn.backend.pose_graph import from_gtsam, to_gtsam
+
+# gtsam is imported inside the functions that solve with it: a run that never does (no loop,
+# local BA compiled) does not spend its start-up importing it.
+if TYPE_CHECKING:
+    import gtsam
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +125,7 @@ def _huber(r: np.ndarray, J: np.ndarray, delta: float) -> tuple[np.ndarray, np.n
 def _optimise(S0: np.ndarray, sel: np.ndarray, data: tuple, cfg: tuple) -> np.ndarray:
     """LM over the matches ``sel``: one vectorised CustomFactor holding every error (each
     whitened by its keypoint's level and Huber-weighted on its own), plus the scale prior."""
+    import gtsam
     X1, X2, uv1, uv2, info1, info2 = (a[sel] for a in data[:6])
     K1, K2 = data[6:]
     chi2, iterations, fix_scale, scale_sigma = cfg

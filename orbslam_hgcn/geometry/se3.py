@@ -8,7 +8,6 @@ Conventions: ``T_cw`` maps world points into the camera frame, ``T_wc`` is its i
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -51,11 +50,17 @@ def transform_points(T: np.ndarray, X: np.ndarray) -> np.ndarray:
 
 def quat_to_R(q_xyzw: np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) or (N, 3, 3) from quaternion(s) ``(qx, qy, qz, qw)``."""
+    from scipy.spatial.transform import (
+        Rotation,  # scipy.spatial: 0.2 s of a run's start-up
+    )
+
     return Rotation.from_quat(np.asarray(q_xyzw, dtype=np.float64)).as_matrix()
 
 
 def R_to_quat(R: np.ndarray) -> np.ndarray:
     """Quaternion(s) ``(qx, qy, qz, qw)`` with qw >= 0 from (3, 3) or (N, 3, 3) rotations."""
+    from scipy.spatial.transform import Rotation
+
     q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
     return np.where(q[..., 3:4] < 0, -q, q)
 

@@ -74,12 +74,17 @@ def triangulate_checked(
     X = triangulate_dlt(projection_matrix(K1, T_1w), projection_matrix(K2, T_2w), uv1, uv2)
     with_scale = scale1 is not None and scale2 is not None
 
+    def plain(a: object) -> np.ndarray:
+        # C-ordered and writeable, whatever the caller's array: numba compiles a version per
+        # layout and read-only flag, and warm_up() compiles (caches) this one only.
+        return np.require(a, np.float64, ["C_CONTIGUOUS", "WRITEABLE"])
+
     def per_point(v: object) -> np.ndarray:
-        return np.ascontiguousarray(np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)))
+        return plain(np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)))
 
     good = _checks(
-        X, uv1, uv2, np.asarray(K1, np.float64), np.asarray(K2, np.float64),
-        np.asarray(T_1w, np.float64), np.asarray(T_2w, np.float64), per_point(sigma2_1), per_point(sigma2_2),
+        plain(X), plain(uv1), plain(uv2), plain(K1), plain(K2),
+        plain(T_1w), plain(T_2w), per_point(sigma2_1), per_point(sigma2_2),
         per_point(scale1 if with_scale else 1.0), per_point(scale2 if with_scale else 1.0),
         with_scale, 1.5 * float(scale_factor),
     )  # fmt: skip

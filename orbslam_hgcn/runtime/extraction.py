@@ -72,9 +72,15 @@ class ExtractionProcess:
         self._child = ChildProcess("extraction", Extractors, (dict(configs), camera), ExtractionError, nice=nice)
 
     def start(self) -> None:
-        """Start the process and wait until its extractors are built and their kernels
-        loaded (about a second), so that this is not spent inside the first frame."""
-        self._child.call("ping")
+        """Start the process without waiting for it: it takes about a second (imports,
+        compiled kernels) to build its extractors; :attr:`starting` says when it has not yet."""
+        self._child.start()
+
+    @property
+    def starting(self) -> bool:
+        """Started but not ready for requests yet (does not block): the caller extracts
+        the frame itself meanwhile rather than wait."""
+        return self._child.starting
 
     def extract(self, name: str, image: np.ndarray) -> tuple[KeypointSet, float]:
         """As :meth:`Extractors.extract`, in the child process. Raises ExtractionError."""

@@ -18,7 +18,8 @@ import time
 log = logging.getLogger(__name__)
 
 # The modules whose kernels a run compiles: tracking and local mapping's (warm_up_kernels),
-# local BA's (in the solver), ORB extraction's (in the extractor or its process).
+# local BA's (in the solver), ORB extraction's (in the extractor or its process), and the
+# vocabularies' word search and HGCN layers (when the vocabulary is loaded and first used).
 RUN_KERNEL_MODULES = (
     "orbslam_hgcn.backend.pose_only",
     "orbslam_hgcn.match.projection_search",
@@ -30,6 +31,9 @@ RUN_KERNEL_MODULES = (
     "orbslam_hgcn.features.fast",
     "orbslam_hgcn.features.distribute",
     "orbslam_hgcn.features.rbrief",
+    "orbslam_hgcn.vocabulary.probe",
+    "orbslam_hgcn.vocabulary.graph",
+    "orbslam_hgcn.vocabulary.ball",
 )
 FIRST_COMPILE_S = "40 to 60"  # seconds, on a 2-core machine
 
@@ -97,9 +101,29 @@ def warm_up_tracking() -> float:
     return seconds
 
 
+def warm_vocabularies() -> float:
+    """Load every shipped vocabulary and give it descriptors to quantise, which compiles
+    (or loads) the kernels of their word search and HGCN layers; returns the seconds."""
+    import numpy as np
+
+    from orbslam_hgcn.vocabulary.loading import SHIPPED, load_vocabulary
+
+    t0 = time.perf_counter()
+    desc = np.random.default_rng(0).integers(0, 256, (500, 32), dtype=np.uint8)
+    loading = logging.getLogger("orbslam_hgcn.vocabulary.loading")
+    level = loading.level
+    loading.setLevel(logging.WARNING)  # not a line per vocabulary
+    try:
+        for name in SHIPPED:
+            load_vocabulary(name).transform(desc)
+    finally:
+        loading.setLevel(level)
+    return time.perf_counter() - t0
+
+
 def warm_all() -> float:
-    """Compile (or load) every kernel of a run: tracking and local mapping's, local BA's
-    and ORB extraction's; returns the seconds it took."""
+    """Compile (or load) every kernel of a run: tracking and local mapping's, local BA's,
+    ORB extraction's and the vocabularies'; returns the seconds it took."""
     from orbslam_hgcn.backend import schur_ba
     from orbslam_hgcn.features.orb import ORBExtractor
     from orbslam_hgcn.geometry.camera import PinholeCamera
@@ -110,6 +134,7 @@ def warm_all() -> float:
     schur_ba.warm_up()
     camera = PinholeCamera(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
     warm_up_extractors([ORBExtractor()], camera)
+    warm_vocabularies()
     return time.perf_counter() - t0
 
 

@@ -202,7 +202,7 @@ class ThreadedStages:
     def _start(self) -> None:
         self.mapper.solver = self._solver("local-ba")
         if isinstance(self.mapper.solver.solver, ProcessSolver):
-            self.mapper.solver.solver.start()  # gtsam loads in the child while tracking starts
+            self.mapper.solver.solver.start()  # loads in the child while tracking starts
         self.mapper.should_abort = self._abort_ba
         self.mapper.on_points, self.mapper.before_changes = self._pointed, self._hold
         self._mapping = Worker("mapping", self._map_one, nice=self._worker_nice).start()
@@ -212,13 +212,6 @@ class ThreadedStages:
             if hasattr(self.loop_closer, "solver"):
                 self.loop_closer.solver = self._solver("global-ba")  # its process starts with the first loop
             self._loop = Worker("loop", self.loop_closer.process, nice=self._worker_nice).start()
-
-    def wait_ready(self) -> None:
-        """Return once the local BA process has started, imported its libraries and loaded
-        its compiled kernels (1-2 s), so that the first keyframes are not mapped late."""
-        solver = self.mapper.solver.solver
-        if isinstance(solver, ProcessSolver):
-            solver.ping()
 
     # --- the tracker's side --------------------------------------------------------------
     @property

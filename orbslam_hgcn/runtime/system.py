@@ -526,10 +526,10 @@ class System:
 
     def _extract(self, image: np.ndarray, extractor: ORBExtractor, remote: bool = False) -> KeypointSet:
         """Keypoints of ``image`` by ``extractor``; with ``remote``, in the extraction
-        process when the system has one."""
+        process when the system has one and it has started (the same keypoints either way)."""
         if image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        if remote and self._extraction is not None:
+        if remote and self._extraction is not None and not self._extraction.starting:
             name = next(k for k, e in self._extractor_names.items() if e is extractor)
             try:
                 return self._extraction.extract(name, image)[0]
@@ -767,7 +767,9 @@ class System:
         prefetch, frozen = None, False
         try:
             try:
-                stages = self.stages  # threaded: worker threads and the local BA process start now
+                # Threaded: the worker threads and the local BA process start now, not waited for
+                # (the first local BA waits for its process if it has not loaded yet).
+                self.stages  # noqa: B018
                 # Unpaced, the reader and the extraction process work ahead, off the tracker's
                 # path: it gets the CPU first (threads.ahead_nice).
                 prefetching = not self.sequential and threads.prefetch
@@ -778,18 +780,13 @@ class System:
                             {name: e.config for name, e in self._extractor_names.items()}, self.camera,
                             nice=self.ahead_nice,
                         )
-                        # The frame on which the tracker's state changes is extracted again in this
-                        # process (process()); load that extractor's kernels and build its pyramid
-                        # tables here, while the child starts, rather than inside that frame.
-                        warm = threading.Thread(
-                            target=warm_up_extractors, args=([self.extractor], self.camera), name="orbslam-warm",
-                            daemon=True,
-                        )  # fmt: skip
-                        warm.start()
-                        try:
-                            self._extraction.start()  # before the reader takes the first frame
-                        finally:
-                            warm.join()
+                        # Not waited for: until the child has built its extractors (about a
+                        # second: imports, compiled kernels) the frames are extracted in this
+                        # process (_extract), as is the frame on which the tracker's state
+                        # changes (process()). Both extractors' kernels and pyramid tables are
+                        # loaded here meanwhile, rather than inside those frames.
+                        self._extraction.start()
+                        warm_up_extractors(self._extractor_names.values(), self.camera)
                     buffer_s = threads.frame_buffer_s if threads.drop_late else 0.0
                     # Ahead by more than a frame only unpaced: a paced run behind its camera would
                     # extract frames the tracker cannot take yet, on the cores local mapping needs.
@@ -797,8 +794,6 @@ class System:
                     prefetch = _Prefetch(
                         self, sequence, n, pacer, buffer_s=buffer_s, depth=depth, reader_nice=self.ahead_nice
                     )
-                if isinstance(stages, ThreadedStages):
-                    stages.wait_ready()
                 frozen = _freeze_startup_objects()
                 stamps = np.asarray(sequence.timestamps, dtype=np.float64)  # as announced
                 i = 0
