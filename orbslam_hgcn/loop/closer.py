@@ -14,6 +14,12 @@ mapping there (ORB-SLAM RequestStop / Release); run in order, local mapping is i
 The map lock is held during detection, the similarity check and the correction itself,
 not while the global BA is solved (a ``solver``, :mod:`orbslam_hgcn.backend.solver`, may
 solve it in another process); local mapping is paused again while its result is written.
+
+Per keyframe checked for a loop, :attr:`LoopCloser.series` keeps the keyframe id, the
+detection's wall time (ms: purge, database query, consistency, indexing; as
+``timings["detect"]``), the keyframe database query's (ms; NaN when detection was skipped
+and no query made) and the keyframes in the database after it: a run writes them to
+``series.npz`` (:mod:`orbslam_hgcn.runtime.results`).
 """
 
 from __future__ import annotations
@@ -102,6 +108,8 @@ class LoopCloser:
         self.attempts: list[Sim3Attempt] = []
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.counts: dict[str, int] = defaultdict(int)
+        # Per keyframe detected on: (kf id, detection ms, database query ms, database keyframes).
+        self.series: list[tuple[int, float, float, int]] = []
         self.map = m
 
     def reset(self, m: Map, keep_database: bool = False) -> None:
@@ -167,10 +175,14 @@ class LoopCloser:
         m.set_not_erase(kf.id)
         found = None
         try:
+            queries = getattr(self.database, "loop_queries", 0)
             self.detector.purge()
             det = self.detector.detect(kf)
             t1 = time.perf_counter()
             self.timings["detect"].append(1000.0 * (t1 - t0))
+            queried = getattr(self.database, "loop_queries", 0) > queries
+            query_ms = self.database.last_loop_query_ms if queried else float("nan")
+            self.series.append((kf.id, 1000.0 * (t1 - t0), query_ms, len(self.database)))
             if det.candidates:
                 self.detections.append(det)
             if not det.consistent:

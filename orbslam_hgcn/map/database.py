@@ -19,11 +19,16 @@ through a function passed to the queries (``kf_id -> best covisible kf ids``), s
 not depend on the map. (In step 3 ORB-SLAM's relocalisation query also adds neighbours
 that were not scored in step 2, with a stale score; here both queries use scored
 neighbours only.)
+
+Each loop query (:meth:`KeyframeDatabase.detect_loop_candidates`) is timed: the loop
+closer reads ``loop_queries`` and ``last_loop_query_ms`` into its per-keyframe series (a
+run's ``series.npz``, :mod:`orbslam_hgcn.runtime.results`).
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass
 
@@ -71,6 +76,9 @@ class KeyframeDatabase:
         # (kf ids, words, weights) of every entry, keyframe after keyframe in the order they
         # were added; rebuilt on the first query after a change.
         self._flat: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # Loop queries made so far and the wall time of the last one (ms), for the timings.
+        self.loop_queries = 0
+        self.last_loop_query_ms = 0.0
 
     # --- content --------------------------------------------------------------------------
     def add(self, kf_id: int, bow: BowVector) -> None:
@@ -179,9 +187,15 @@ class KeyframeDatabase:
         a candidate (ORB-SLAM: the lowest score between the query and its covisible
         keyframes). covisible: kf_id -> best covisible kf ids (None: no groups).
         per_word: step 2 compares the shared words divided by the keyframe's own number of
-        words, instead of the shared words (see :meth:`_detect`).
+        words, instead of the shared words (see :meth:`_detect`). The query's wall time is
+        kept in ``last_loop_query_ms`` (and counted in ``loop_queries``).
         """
-        return self._detect(bow, set(int(k) for k in connected), float(min_score), covisible, per_word)
+        t0 = time.perf_counter()
+        try:
+            return self._detect(bow, set(int(k) for k in connected), float(min_score), covisible, per_word)
+        finally:
+            self.last_loop_query_ms = 1000.0 * (time.perf_counter() - t0)
+            self.loop_queries += 1
 
     def detect_relocalization_candidates(
         self, bow: BowVector, covisible: CovisibleFn | None = None, per_word: bool = False

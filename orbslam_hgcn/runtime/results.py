@@ -13,6 +13,26 @@ than ORB-SLAM2: each pose so rebuilt is the start of one more motion-only optimi
 against the final map, from the inlier matches the frame was tracked with
 (:func:`~orbslam_hgcn.tracking.frame_ops.refine_recorded_pose`). A keyframe's own frame
 keeps its keyframe's pose, and a frame with too few of its points left keeps the rebuilt one.
+
+Beside ``stats.json`` (summaries: count, median, p95, mean, max) a run writes the series
+they summarise, ``series.npz`` (:func:`write_series`, :func:`read_series`; numpy arrays, no
+pickles), to see how costs grow over a long run (``bench/bench_long.py``):
+
+* per frame processed, in order: ``frame`` (index in the sequence), ``frame_t`` (its
+  timestamp, s), ``frame_wall`` (``time.time()`` when its pose came out), ``tracking_ms``
+  (NaN on frames not tracked and on the initialising one, as ``tracking_per_frame``
+  leaves them out), ``frame_ms`` (latency, extraction start to pose, as ``frame_total``),
+  ``frame_ref_kf`` (the reference keyframe its pose is recorded against; -1 none);
+* every :data:`COUNT_EVERY`-th frame processed: ``count_frame``, ``count_keyframes`` and
+  ``count_points`` (the active map's good keyframes and points after tracking that frame;
+  counted only so often, since counting walks the map);
+* per keyframe local mapping finished, in order: ``kf_id``, ``kf_frame`` (the frame it was
+  made from), ``kf_mapping_ms`` and ``kf_local_ba_ms`` (as ``local_mapping_per_keyframe``
+  and ``local_ba_per_keyframe``), ``kf_wall`` (``time.time()`` when mapping finished it);
+* per keyframe checked for a loop, in order: ``loop_kf_id``, ``loop_detect_ms`` (detection:
+  database purge, query, consistency, indexing), ``loop_query_ms`` (the keyframe
+  database's loop query alone; NaN when detection was skipped, too soon after the map's
+  start or the last loop), ``loop_db_keyframes`` (keyframes in the database after it).
 """
 
 from __future__ import annotations
@@ -26,13 +46,18 @@ from typing import Any
 import numpy as np
 
 from orbslam_hgcn.config import BackendConfig
+from orbslam_hgcn.errors import OrbslamError
 from orbslam_hgcn.geometry.se3 import inv_T
 from orbslam_hgcn.map import Map
+from orbslam_hgcn.npzfile import atomic_save_npz, read_npz
 from orbslam_hgcn.tracking.frame_ops import pose_from_reference, refine_recorded_pose
 from orbslam_hgcn.tracking.tracker import PoseRecord, TrackingState
 from orbslam_hgcn.trajectory import Trajectory, write_tum
 
 log = logging.getLogger(__name__)
+
+SERIES_FILE = "series.npz"
+COUNT_EVERY = 10  # series.npz: the map's keyframes and points are counted every this many frames
 
 
 def keyframe_trajectory(m: Map) -> Trajectory:
@@ -120,8 +145,54 @@ def summary_ms(values: list[float] | np.ndarray) -> dict[str, float | None]:
     }
 
 
-def write_outputs(out: str | Path, kf_traj: Trajectory, cam_traj: Trajectory, stats: dict[str, Any]) -> dict[str, Path]:
-    """Write KeyFrameTrajectory.txt, CameraTrajectory.txt (TUM, T_wc) and stats.json."""
+def series_arrays(
+    frames: list[tuple[int, float, float, float, float]], counts: list[tuple[int, int, int]],
+    mapped: list[tuple[int, int, float, float, float]], loops: list[tuple[int, float, float, int]],
+    records: Iterable[PoseRecord] = (),
+) -> dict[str, np.ndarray]:  # fmt: skip
+    """The arrays of ``series.npz`` (see the module text) from a run's rows: ``frames``
+    (frame, timestamp, tracking ms or NaN, frame ms, wall time), ``counts`` (frame,
+    keyframes, points), ``mapped`` (kf id, frame, local mapping ms, local BA ms, wall time),
+    ``loops`` (kf id, detection ms, query ms or NaN, database keyframes); ``records``: the
+    tracker's, for each frame's reference keyframe."""
+
+    def cols(rows: list[tuple], n: int) -> list[np.ndarray]:
+        a = np.asarray(rows, dtype=np.float64).reshape(len(rows), n)
+        return [a[:, i] for i in range(n)]
+
+    ref_of = {r.frame_id: r.ref_kf_id for r in records}
+    f, t, trk, fms, wall = cols(frames, 5)
+    cf, ck, cp = cols(counts, 3)
+    kid, kfr, kms, kba, kwall = cols(mapped, 5)
+    lid, ldet, lq, ldb = cols(loops, 4)
+    i64 = np.int64
+    return {
+        "frame": f.astype(i64), "frame_t": t, "frame_wall": wall, "tracking_ms": trk, "frame_ms": fms,
+        "frame_ref_kf": np.array([ref_of.get(int(k), -1) for k in f], dtype=i64),
+        "count_frame": cf.astype(i64), "count_keyframes": ck.astype(i64), "count_points": cp.astype(i64),
+        "kf_id": kid.astype(i64), "kf_frame": kfr.astype(i64), "kf_mapping_ms": kms, "kf_local_ba_ms": kba,
+        "kf_wall": kwall,
+        "loop_kf_id": lid.astype(i64), "loop_detect_ms": ldet, "loop_query_ms": lq,
+        "loop_db_keyframes": ldb.astype(i64),
+    }  # fmt: skip
+
+
+def write_series(path: str | Path, arrays: dict[str, np.ndarray]) -> Path:
+    """Write ``series.npz`` (:func:`series_arrays`) atomically."""
+    return atomic_save_npz(path, arrays)
+
+
+def read_series(path: str | Path) -> dict[str, np.ndarray]:
+    """The arrays of a run's ``series.npz``; an OrbslamError names a missing or damaged file."""
+    return read_npz(Path(path), "series", OrbslamError)
+
+
+def write_outputs(
+    out: str | Path, kf_traj: Trajectory, cam_traj: Trajectory, stats: dict[str, Any],
+    series: dict[str, np.ndarray] | None = None,
+) -> dict[str, Path]:  # fmt: skip
+    """Write KeyFrameTrajectory.txt, CameraTrajectory.txt (TUM, T_wc), stats.json and, when
+    given, the per-frame and per-keyframe ``series`` (series.npz)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = {
@@ -132,4 +203,6 @@ def write_outputs(out: str | Path, kf_traj: Trajectory, cam_traj: Trajectory, st
     write_tum(paths["keyframes"], kf_traj)
     write_tum(paths["camera"], cam_traj)
     paths["stats"].write_text(json.dumps(stats, indent=2, sort_keys=False) + "\n", encoding="utf-8")
+    if series is not None:
+        paths["series"] = write_series(out / SERIES_FILE, series)
     return paths

@@ -36,6 +36,11 @@ processed), ``check()`` (re-raise a stage's failure) and ``close(drain)``.
   and holds it still until released. A keyframe still waiting in the queue has no
   spanning-tree parent and no covisibility links yet, so a correction would leave it at
   its uncorrected pose; ORB-SLAM's local mapping likewise empties its queue before it stops.
+
+Both runners take an optional ``series`` list: per keyframe local mapping finished, they
+append (keyframe id, its frame, local mapping ms, local BA ms, ``time.time()``), the
+mapper's own timings (:func:`note_mapped`; a run's ``series.npz``,
+:mod:`orbslam_hgcn.runtime.results`).
 """
 
 from __future__ import annotations
@@ -106,11 +111,22 @@ class CountingSolver:
         self.solver.close()
 
 
+def note_mapped(series: list | None, mapper: Any, kf: KeyFrame) -> None:
+    """Append to ``series`` (when given) the keyframe ``kf`` the mapper has just processed:
+    (its id, its frame, local mapping ms, local BA ms, time.time())."""
+    if series is None:
+        return
+    t = getattr(mapper, "timings", {})
+    total, ba = t.get("total") or [float("nan")], t.get("local_ba") or [float("nan")]
+    series.append((int(kf.id), int(getattr(kf, "frame_id", -1)), float(total[-1]), float(ba[-1]), time.time()))
+
+
 class SequentialStages:
     """Local mapping, then loop closing, on the calling thread (deterministic)."""
 
-    def __init__(self, mapper: Any, loop_closer: Any) -> None:
+    def __init__(self, mapper: Any, loop_closer: Any, series: list | None = None) -> None:
         self.mapper, self.loop_closer = mapper, loop_closer
+        self.series = series
         self.activity = ActivityCounter()
         # The same in-process solves as without a runner, counted for the timing figures.
         mapper.solver = CountingSolver(InProcessSolver(), self.activity)
@@ -149,6 +165,7 @@ class SequentialStages:
 
     def submit(self, kf: KeyFrame) -> None:
         out = self.mapper.process(kf)
+        note_mapped(self.series, self.mapper, kf)
         if out is not None and self.loop_closer is not None:
             self.loop_closer.process(out)
 
@@ -167,13 +184,16 @@ class ThreadedStages:
 
     process_solver: solve local and global BA in child processes (True), or in the worker
     threads themselves (False: simpler, but every iteration stalls tracking); solver_nice:
-    niceness added to those processes; worker_nice: to the worker threads (Linux).
+    niceness added to those processes; worker_nice: to the worker threads (Linux); series:
+    see the module text.
     """
 
     def __init__(
-        self, mapper: Any, loop_closer: Any, process_solver: bool = True, solver_nice: int = 0, worker_nice: int = 0
-    ) -> None:
+        self, mapper: Any, loop_closer: Any, process_solver: bool = True, solver_nice: int = 0, worker_nice: int = 0,
+        series: list | None = None,
+    ) -> None:  # fmt: skip
         self.mapper, self.loop_closer = mapper, loop_closer
+        self.series = series
         self.activity = ActivityCounter()
         self._gate = threading.Lock()  # held by the mapper per keyframe, by a pause
         self._handover = threading.Lock()  # held by the tracker from its keyframe decision to the hand-over
@@ -359,6 +379,7 @@ class ThreadedStages:
                     raise
                 log.debug("keyframe %d: its map was discarded while it was being mapped (%s)", kf.id, exc)
                 return
+            note_mapped(self.series, self.mapper, kf)
         if out is not None and self._loop is not None:
             self._loop.submit(out)
 

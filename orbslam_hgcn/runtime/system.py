@@ -75,9 +75,11 @@ from orbslam_hgcn.mapping.local_mapper import LocalMapper
 from orbslam_hgcn.runtime.extraction import ExtractionError, ExtractionProcess, warm_up_extractors
 from orbslam_hgcn.runtime.locks import TrackingFirstLock, first
 from orbslam_hgcn.runtime.results import (
+    COUNT_EVERY,
     camera_trajectory,
     frame_counts,
     keyframe_trajectory,
+    series_arrays,
     summary_ms,
     write_outputs,
 )
@@ -432,6 +434,12 @@ class System:
         # and when (time.perf_counter) the frame's extraction started.
         self.frame_optimising: list[bool] = []
         self.frame_started: list[float] = []
+        # The series of series.npz (runtime/results.py): per frame processed (frame, timestamp,
+        # tracking ms or NaN, frame ms, time.time()); every COUNT_EVERY-th frame (frame, the
+        # active map's keyframes, points); per keyframe mapped (filled by the stage runner).
+        self.frame_series: list[tuple[int, float, float, float, float]] = []
+        self.count_series: list[tuple[int, int, int]] = []
+        self.keyframe_series: list[tuple[int, int, float, float, float]] = []
         self.events: list[dict[str, Any]] = []
         self.n_resets = 0
         # Frames skipped because their image could not be read: {frame, t, error}.
@@ -461,12 +469,13 @@ class System:
         """The stage runner (threads and solver processes start on first use)."""
         if self._stages is None:
             if self.sequential:
-                self._stages = SequentialStages(self.mapper, self.loop_closer)
+                self._stages = SequentialStages(self.mapper, self.loop_closer, series=self.keyframe_series)
             else:
                 self._share_map()
                 t = self.configs.threads
                 self._stages = ThreadedStages(
-                    self.mapper, self.loop_closer, t.process_solver, t.solver_nice, t.worker_nice
+                    self.mapper, self.loop_closer, t.process_solver, t.solver_nice, t.worker_nice,
+                    series=self.keyframe_series,
                 )
         return self._stages
 
@@ -585,6 +594,9 @@ class System:
             with first(self.tracker.map.lock):
                 self.timings["lock_wait"].append(1000.0 * (time.perf_counter() - t1))
                 result = self.tracker.track(Frame(frame_id, timestamp, self.camera, kps))
+                if len(self.frame_series) % COUNT_EVERY == 0:  # under the lock already held
+                    m = self.tracker.map
+                    self.count_series.append((frame_id, m.n_keyframes(), m.n_points()))
             map_changed = result.reset or result.new_map or result.switched_map
             if not map_changed:
                 for kf in result.new_keyframes:
@@ -607,6 +619,9 @@ class System:
         # below hold the next frames, whose latency then counts them.
         self.timings["frame"].append(1000.0 * (time.perf_counter() - t0))
         self.frame_started.append(t0)
+        tracked = result.state == TrackingState.OK and not result.initialized
+        self.frame_series.append((frame_id, timestamp, result.time_ms if tracked else math.nan,
+                                  self.timings["frame"][-1], time.time()))  # fmt: skip
         optimising = optimising or stages.optimising or stages.activity.started != started
         self.frame_optimising.append(bool(optimising))
         if hold:
@@ -1016,11 +1031,19 @@ class System:
             "relocalization": self.relocalizer.stats() if hasattr(self.relocalizer, "stats") else {},
         }
 
+    def series(self) -> dict[str, np.ndarray]:
+        """The per-frame and per-keyframe series of the run so far (series.npz:
+        :func:`~orbslam_hgcn.runtime.results.series_arrays`)."""
+        loops = list(getattr(self.loop_closer, "series", []))
+        return series_arrays(self.frame_series, self.count_series, list(self.keyframe_series), loops,
+                             self.tracker.records)  # fmt: skip
+
     def save(
         self, out: str | Path, extra: dict[str, Any] | None = None, camera: Trajectory | None = None
     ) -> dict[str, Path]:
         """Write KeyFrameTrajectory.txt, CameraTrajectory.txt (the output map; ``camera``
-        when given, else :meth:`camera_trajectory`) and stats.json into ``out``; with
+        when given, else :meth:`camera_trajectory`), stats.json and series.npz
+        (:meth:`series`) into ``out``; with
         several maps, each other map's trajectories into ``out/maps/``
         (KeyFrameTrajectory_map<id>.txt, CameraTrajectory_map<id>.txt), listed in
         stats.json under ``atlas.map_files``."""
@@ -1041,4 +1064,4 @@ class System:
         stats["atlas"]["map_files"] = files
         if camera is None:
             camera = self.camera_trajectory()
-        return write_outputs(out, self.keyframe_trajectory(), camera, stats)
+        return write_outputs(out, self.keyframe_trajectory(), camera, stats, self.series())
