@@ -537,6 +537,27 @@ def test_unpaced_runs_lower_the_priority_of_the_work_done_ahead(seq):
                 ThreadsConfig(**{name: bad})
 
 
+def test_unpaced_runs_leave_the_ba_process_at_the_trackers_priority(seq):
+    """threads.solver_nice lowers the local BA process's priority in paced runs only: in an
+    unpaced one the tracker waits for each local BA (mapping_sync points), so the BA runs at
+    its priority."""
+    base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    for speed, expected in ((0.0, base), (1.0, min(base + 7, 19))):
+        system = System(seq.camera, _threads(speed=speed, solver_nice=7), sequential=False)
+        seen = set()
+
+        def observe(system, rec, result, seen=seen):
+            for p in multiprocessing.active_children():
+                if p.name == "orbslam-local-ba":
+                    seen.add(os.getpriority(os.PRIO_PROCESS, p.pid))
+
+        system.observers.append(observe)
+        system.run(seq, 30, progress=False)
+        assert seen == {expected}, (speed, seen)
+        assert system.stats()["threads"]["solver_nice"] == expected - base
+        _assert_nothing_left()
+
+
 def test_a_run_extracts_here_until_its_extraction_process_is_ready(seq, monkeypatch):
     """The run does not wait for the extraction process to start: it extracts the first
     frames itself meanwhile, and every frame gets the same keypoints either way, so the
