@@ -89,3 +89,46 @@ def test_per_word_filter_is_not_won_by_the_largest_keyframe():
     assert [c.kf_id for c in d.detect_relocalization_candidates(query, per_word=True)] == [8]
     loop = d.detect_loop_candidates(query, connected=[], min_score=0.0, per_word=True)
     assert [(c.kf_id, c.common_words) for c in loop] == [(8, 8)]
+
+
+def test_the_growing_store_scores_as_a_database_built_afresh():
+    """Keyframes added, replaced and erased in any order: every query scores as a database
+    holding only the keyframes left, added in the same order, and the entries stay in that
+    order (its sums run in the same order)."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+
+    def random_bow() -> BowVector:
+        words = np.unique(rng.integers(0, 3000, rng.integers(0, 400)))
+        weights = rng.random(len(words))
+        return BowVector(words, weights / max(weights.sum(), 1e-9))
+
+    grown: KeyframeDatabase = KeyframeDatabase()
+    kept: dict[int, BowVector] = {}
+    queries = 0
+    for step in range(800):
+        r = rng.random()
+        if r < 0.65 or not kept:
+            k, bow = int(rng.integers(0, 300)), random_bow()
+            grown.add(k, bow)
+            kept.pop(k, None)
+            kept[k] = bow
+        elif r < 0.85:
+            k = int(rng.choice(list(kept)))
+            grown.erase(k)
+            del kept[k]
+        else:
+            fresh = KeyframeDatabase()
+            for k, bow in kept.items():
+                fresh.add(k, bow)
+            query, connected = random_bow(), set(rng.choice(list(kept), 3).tolist())
+            for a, b in zip(grown.shared(query, connected), fresh.shared(query, connected)):
+                np.testing.assert_array_equal(a, b)
+            loop = grown.detect_loop_candidates(query, connected, 0.0, per_word=True)
+            assert loop == fresh.detect_loop_candidates(query, connected, 0.0, per_word=True)
+            assert grown.keyframes() == list(kept)
+            if len(query.words):
+                assert grown.postings(int(query.words[0])) == fresh.postings(int(query.words[0]))
+            queries += 1
+    assert queries > 50 and len(kept) > 100

@@ -65,7 +65,9 @@ class KeyframeDatabase:
     thousand words, a query shares most of its words with every keyframe, so the postings
     touch a large share of the entries anyway, and one vectorised pass over all of them
     is several times quicker than walking them in Python. :meth:`postings` answers the
-    inverted index's question for callers that want it.
+    inverted index's question for callers that want it. The arrays grow in place as
+    keyframes are added (a replaced or erased keyframe's entries are marked dead and
+    dropped at the next query), so adding a keyframe does not copy the others' entries.
     """
 
     def __init__(self, min_common_ratio: float = 0.8, retain_ratio: float = 0.75, n_covisible: int = 10) -> None:
@@ -73,9 +75,16 @@ class KeyframeDatabase:
         self.retain_ratio = float(retain_ratio)
         self.n_covisible = int(n_covisible)
         self._bows: dict[int, BowVector] = {}
-        # (kf ids, words, weights) of every entry, keyframe after keyframe in the order they
-        # were added; rebuilt on the first query after a change.
-        self._flat: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # Every entry's kf id, word and weight, keyframe after keyframe in the order they
+        # were added, in arrays of spare capacity (the first _n rows are used); a keyframe's
+        # rows in _rows; rows of replaced or erased keyframes are dead until compacted.
+        self._ids = np.zeros(0, np.int64)
+        self._words = np.zeros(0, np.int64)
+        self._weights = np.zeros(0, np.float64)
+        self._n = 0
+        self._rows: dict[int, tuple[int, int]] = {}
+        self._dead = np.zeros(0, bool)
+        self._n_dead = 0
         # Loop queries made so far and the wall time of the last one (ms), for the timings.
         self.loop_queries = 0
         self.last_loop_query_ms = 0.0
@@ -84,18 +93,40 @@ class KeyframeDatabase:
     def add(self, kf_id: int, bow: BowVector) -> None:
         """Add keyframe ``kf_id``'s vector (re-adding replaces it)."""
         kf_id = int(kf_id)
+        self._kill(kf_id)
         self._bows.pop(kf_id, None)
         self._bows[kf_id] = bow
-        self._flat = None
+        m = len(bow.words)
+        if self._n + m > len(self._ids):
+            cap = max(2 * len(self._ids), self._n + m, 4096)
+            for name in ("_ids", "_words", "_weights", "_dead"):
+                old = getattr(self, name)
+                new = np.zeros(cap, old.dtype)
+                new[: self._n] = old[: self._n]
+                setattr(self, name, new)
+        a, b = self._n, self._n + m
+        self._ids[a:b] = kf_id
+        self._words[a:b] = bow.words
+        self._weights[a:b] = bow.weights
+        self._dead[a:b] = False
+        self._rows[kf_id] = (a, b)
+        self._n = b
 
     def erase(self, kf_id: int) -> None:
         """Remove keyframe ``kf_id`` (no effect if absent)."""
         if self._bows.pop(int(kf_id), None) is not None:
-            self._flat = None
+            self._kill(int(kf_id))
 
     def clear(self) -> None:
         self._bows.clear()
-        self._flat = None
+        self._rows.clear()
+        self._n = self._n_dead = 0
+
+    def _kill(self, kf_id: int) -> None:
+        rows = self._rows.pop(kf_id, None)
+        if rows is not None:
+            self._dead[rows[0]:rows[1]] = True
+            self._n_dead += rows[1] - rows[0]
 
     def __len__(self) -> int:
         return len(self._bows)
@@ -116,20 +147,22 @@ class KeyframeDatabase:
         return dict(zip(ids[hit].tolist(), weights[hit].tolist()))
 
     def _entries(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(T,) int64 keyframe ids, (T,) int64 words, (T,) float64 weights of all entries."""
-        if self._flat is None:
-            items = list(self._bows.items())
-            bows = [b for _, b in items]
-            sizes = [len(b.words) for b in bows]
-            if sum(sizes) == 0:
-                self._flat = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float64))
-            else:
-                self._flat = (
-                    np.repeat(np.array([k for k, _ in items], np.int64), sizes),
-                    np.concatenate([b.words for b in bows]).astype(np.int64),
-                    np.concatenate([b.weights for b in bows]).astype(np.float64),
-                )
-        return self._flat
+        """(T,) int64 keyframe ids, (T,) int64 words, (T,) float64 weights of all entries
+        (views of the store, keyframe after keyframe in the order they were added)."""
+        if self._n_dead:
+            keep = ~self._dead[: self._n]
+            n = int(keep.sum())
+            for name in ("_ids", "_words", "_weights"):
+                arr = getattr(self, name)
+                arr[:n] = arr[: self._n][keep]
+            self._dead[:n] = False
+            self._n, self._n_dead = n, 0
+            starts = np.flatnonzero(np.r_[True, self._ids[1:n] != self._ids[: n - 1]]) if n else np.zeros(0, np.int64)
+            ends = np.r_[starts[1:], n]
+            self._rows = {int(self._ids[a]): (int(a), int(b)) for a, b in zip(starts, ends)}
+            for kf in self._bows:  # keyframes without a word
+                self._rows.setdefault(kf, (n, n))
+        return self._ids[: self._n], self._words[: self._n], self._weights[: self._n]
 
     def _sizes(self, ids: np.ndarray) -> np.ndarray:
         """(M,) float64 number of words of each keyframe of ``ids``."""
@@ -161,6 +194,12 @@ class KeyframeDatabase:
         if len(ids_a) == 0:
             empty = np.zeros(0, np.int64)
             return empty, empty, np.zeros(0, np.float64)
+        # Counted by keyframe id (ids are small non-negative integers): the same sums, in
+        # the same order, as grouping the sorted ids, without the sort.
+        if ids_a.min() >= 0:
+            counts = np.bincount(ids_a)
+            uniq = np.flatnonzero(counts)
+            return uniq, counts[uniq], np.bincount(ids_a, weights=np.minimum(kf_a, q_a))[uniq]
         uniq, inv = np.unique(ids_a, return_inverse=True)
         common = np.bincount(inv, minlength=len(uniq))
         scores = np.bincount(inv, weights=np.minimum(kf_a, q_a), minlength=len(uniq))
