@@ -724,9 +724,18 @@ class ThreadsConfig:
     # are identical on every run. False: local mapping and loop closing in worker threads.
     # (``orbslam-hgcn run`` sets it from its --sequential flag: threaded by default.)
     sequential: bool = True
-    # Threaded only: solve local and global BA in child processes. gtsam keeps the GIL
-    # while it iterates, so a BA solved in a thread of this process stalls tracking.
+    # Threaded only: solve the BAs that run in gtsam (global BA, the essential graph, local
+    # BA with backend.local_ba_solver "gtsam") in child processes. gtsam keeps the GIL while
+    # it iterates, so a BA solved in a thread of this process stalls tracking.
     process_solver: bool = True
+    # Threaded only: solve local BA with the compiled Schur solver (backend.local_ba_solver
+    # "schur", the default) in a child process too (True), or in the mapping thread (False).
+    # The compiled solver releases the GIL while it iterates, so in the thread it stalls
+    # nothing, and no problem is pickled to a process and back; the run also starts one
+    # process fewer. On KITTI 00 frames 0-159 (unpaced, idle 2-core Xeon, 3 rounds
+    # alternated) the span from the first frame to the last pose was 3.72-3.81 s in the
+    # thread against 4.20-4.29 s in a process, with the same poses.
+    local_ba_process: bool = False
     # Niceness added to the BA processes of paced runs: on a machine with few cores,
     # extraction and tracking get the CPU first, and BA the time they leave (local BA's CPU
     # budget is counted in CPU time, so it does not shrink). Unpaced runs (speed 0) leave
@@ -828,7 +837,7 @@ class ThreadsConfig:
     # every "each" run, for a latency p95 that the other jobs' load left about as high.
     # "points" (the default): after a keyframe, until mapping has triangulated its new points
     # and fused them with the neighbours' (insert, words, triangulation, fusion); mapping
-    # then solves its local BA (in the solver process, beside the tracker) but holds before
+    # then solves its local BA (beside the tracker, the GIL released) but holds before
     # writing it back, and before culling, until the next frame is tracked; after that frame
     # the tracker waits for mapping to finish. So the next frame tracks against the
     # keyframe's points, mapping works while frames arrive, and every frame sees the same map

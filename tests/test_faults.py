@@ -48,6 +48,15 @@ def no_drops(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
+def ba_process(tmp_path_factory) -> Path:
+    """no_drops, with local BA solved in its child process (threads.local_ba_process; by
+    default the mapping thread solves it)."""
+    path = tmp_path_factory.mktemp("config") / "ba_process.yaml"
+    path.write_text("threads:\n  frame_buffer_s: 0\n  local_ba_process: true\n")
+    return path
+
+
+@pytest.fixture(scope="module")
 def broken_seq(synth_replay_100, tmp_path_factory) -> Path:
     """The replay with frame 30 truncated, 31 an empty file and 32 of half the size."""
     seq = tmp_path_factory.mktemp("broken") / "seq"
@@ -109,7 +118,7 @@ def test_on_bad_frame_stop_keeps_the_frames_before(broken_seq, tmp_path, capsys,
 
 
 def test_a_killed_local_ba_process_is_replaced_and_the_run_goes_on(
-    synth_replay_100, tmp_path, capsys, no_drops, monkeypatch
+    synth_replay_100, tmp_path, capsys, ba_process, monkeypatch
 ):
     killed: list[int] = []
     local_ba = ProcessSolver.local_ba
@@ -121,7 +130,7 @@ def test_a_killed_local_ba_process_is_replaced_and_the_run_goes_on(
         return local_ba(self, *args, **kw)
 
     monkeypatch.setattr(ProcessSolver, "local_ba", kill_first)
-    code, stats, err = _run(synth_replay_100, tmp_path / "out", capsys, no_drops, frames=100)
+    code, stats, err = _run(synth_replay_100, tmp_path / "out", capsys, ba_process, frames=100)
     assert killed and code == 0 and err == []
     assert stats["complete"] is True
     assert stats["child_processes_lost"]["local_ba"] == 1 == stats["mapping_counts"]["ba_process_lost"]
@@ -130,7 +139,7 @@ def test_a_killed_local_ba_process_is_replaced_and_the_run_goes_on(
 
 
 def test_a_local_ba_process_lost_too_often_stops_the_run_with_its_results(
-    synth_replay_100, tmp_path, capsys, no_drops, monkeypatch
+    synth_replay_100, tmp_path, capsys, ba_process, monkeypatch
 ):
     local_ba = ProcessSolver.local_ba
 
@@ -141,7 +150,7 @@ def test_a_local_ba_process_lost_too_often_stops_the_run_with_its_results(
     monkeypatch.setattr(ProcessSolver, "local_ba", kill)
     monkeypatch.setattr(local_mapper, "MAX_LOST_SOLVERS", 0)
     out = tmp_path / "out"
-    code, stats, err = _run(synth_replay_100, out, capsys, no_drops, frames=100)
+    code, stats, err = _run(synth_replay_100, out, capsys, ba_process, frames=100)
     assert code == 4
     assert len(err) == 1 and "mapping worker failed" in err[0] and "local-ba process died" in err[0]
     assert stats["complete"] is False and stats["end"]["kind"] == "stage_failed"

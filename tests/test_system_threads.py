@@ -543,7 +543,7 @@ def test_unpaced_runs_leave_the_ba_process_at_the_trackers_priority(seq):
     its priority."""
     base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
     for speed, expected in ((0.0, base), (1.0, min(base + 7, 19))):
-        system = System(seq.camera, _threads(speed=speed, solver_nice=7), sequential=False)
+        system = System(seq.camera, _threads(speed=speed, solver_nice=7, local_ba_process=True), sequential=False)
         seen = set()
 
         def observe(system, rec, result, seen=seen):
@@ -556,6 +556,27 @@ def test_unpaced_runs_leave_the_ba_process_at_the_trackers_priority(seq):
         assert seen == {expected}, (speed, seen)
         assert system.stats()["threads"]["solver_nice"] == expected - base
         _assert_nothing_left()
+
+
+def test_local_ba_in_the_mapping_thread_gives_the_process_results(seq):
+    """By default the compiled local BA runs in the mapping thread, with no child process
+    for it: the poses are those of a run that solves it in its process."""
+    trajectories, children = {}, {}
+    for in_process in (False, True):
+        system = System(seq.camera, _threads(speed=0.0, local_ba_process=in_process), sequential=False)
+        names = set()
+
+        def observe(system, rec, result, names=names):
+            names.update(p.name for p in multiprocessing.active_children())
+
+        system.observers.append(observe)
+        system.run(seq, N_FRAMES, progress=False)
+        trajectories[in_process], children[in_process] = system.camera_trajectory(), names
+        assert system.stats()["timing_ms"]["local_ba_per_keyframe"]["count"] >= 3
+        _assert_nothing_left()
+    assert "orbslam-local-ba" in children[True] and "orbslam-local-ba" not in children[False]
+    assert len(trajectories[False]) > 10
+    np.testing.assert_array_equal(trajectories[False].poses, trajectories[True].poses)
 
 
 def test_a_run_extracts_here_until_its_extraction_process_is_ready(seq, monkeypatch):

@@ -14,8 +14,10 @@ processed), ``check()`` (re-raise a stage's failure) and ``close(drain)``.
   queue; the mapper hands the keyframes it keeps to the loop closer's queue;
 * every stage holds the map lock (:attr:`Map.lock`) per step, the tracker per frame; the
   local and global BA hold it only to cut their problem from the map and write the result
-  back, and are solved in a child process (:class:`~orbslam_hgcn.backend.solver.ProcessSolver`)
-  so the tracking thread keeps the GIL meanwhile;
+  back; global BA (gtsam, which holds the GIL) is solved in a child process
+  (:class:`~orbslam_hgcn.backend.solver.ProcessSolver`) so the tracking thread keeps the GIL
+  meanwhile, local BA by the compiled Schur solver in the mapping thread (it releases the
+  GIL; in a process too with ``local_ba_process``);
 * keyframe acceptance: local mapping accepts a keyframe when idle, or while its local BA
   runs, in which case the waiting keyframe aborts that BA (ORB-SLAM's ``InterruptBA``
   followed by the insertion on the next frame, in one step) once its robust iterations
@@ -183,14 +185,16 @@ class ThreadedStages:
     """Local mapping and loop closing in worker threads (see the module text).
 
     process_solver: solve local and global BA in child processes (True), or in the worker
-    threads themselves (False: simpler, but every iteration stalls tracking); solver_nice:
-    niceness added to those processes; worker_nice: to the worker threads (Linux); series:
-    see the module text.
+    threads themselves (False: simpler, but every gtsam iteration stalls tracking);
+    local_ba_process: with process_solver, local BA by the compiled Schur solver in a process
+    too (True), or in the mapping thread (False: it releases the GIL; ThreadsConfig's
+    default); solver_nice: niceness added to those processes; worker_nice: to the worker
+    threads (Linux); series: see the module text.
     """
 
     def __init__(
         self, mapper: Any, loop_closer: Any, process_solver: bool = True, solver_nice: int = 0, worker_nice: int = 0,
-        series: list | None = None,
+        series: list | None = None, local_ba_process: bool = True,
     ) -> None:  # fmt: skip
         self.mapper, self.loop_closer = mapper, loop_closer
         self.series = series
@@ -211,6 +215,7 @@ class ThreadedStages:
         self._mapping: Worker | None = None
         self._loop: Worker | None = None
         self._process_solver = process_solver
+        self._local_ba_process = local_ba_process
         self._solver_nice, self._worker_nice = solver_nice, worker_nice
         self._start()
 
@@ -220,7 +225,13 @@ class ThreadedStages:
         return CountingSolver(solver, self.activity)
 
     def _start(self) -> None:
-        self.mapper.solver = self._solver("local-ba")
+        # Local BA with the compiled solver runs in the mapping thread unless
+        # threads.local_ba_process (it releases the GIL); in gtsam it needs a process.
+        in_thread = not self._local_ba_process and getattr(self.mapper.backend, "local_ba_solver", "") == "schur"
+        if in_thread:
+            self.mapper.solver = CountingSolver(InProcessSolver(), self.activity)
+        else:
+            self.mapper.solver = self._solver("local-ba")
         if isinstance(self.mapper.solver.solver, ProcessSolver):
             self.mapper.solver.solver.start()  # loads in the child while tracking starts
         self.mapper.should_abort = self._abort_ba

@@ -480,7 +480,7 @@ class System:
                 self.solver_nice = t.solver_nice if self._paced else 0
                 self._stages = ThreadedStages(
                     self.mapper, self.loop_closer, t.process_solver, self.solver_nice, t.worker_nice,
-                    series=self.keyframe_series,
+                    series=self.keyframe_series, local_ba_process=t.local_ba_process,
                 )
         return self._stages
 
@@ -789,8 +789,8 @@ class System:
         prefetch, frozen = None, False
         try:
             try:
-                # Threaded: the worker threads and the local BA process start now, not waited for
-                # (the first local BA waits for its process if it has not loaded yet).
+                # Threaded: the worker threads (and a local BA process, with
+                # threads.local_ba_process) start now, not waited for.
                 self.stages  # noqa: B018
                 # Unpaced, the reader and the extraction process work ahead, off the tracker's
                 # path: it gets the CPU first (threads.ahead_nice).
@@ -1003,6 +1003,7 @@ class System:
             "threads": {
                 "sequential": self.sequential,
                 "process_solver": self.configs.threads.process_solver,
+                "local_ba_process": self.configs.threads.local_ba_process,
                 "mapping_sync": self.configs.threads.mapping_sync,
                 "speed": 0.0 if self.sequential else self.configs.threads.speed,
                 "library_threads": self.library_threads,
