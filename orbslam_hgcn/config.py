@@ -740,10 +740,11 @@ class ThreadsConfig:
     # extraction and tracking get the CPU first, and BA the time they leave (local BA's CPU
     # budget is counted in CPU time, so it does not shrink). Unpaced runs (speed 0) leave
     # the BA processes at the tracker's priority: with mapping_sync "points" the tracker
-    # waits for each local BA after the next frame, so a BA starved by the work ahead
-    # (extraction) holds the tracker. On KITTI 00 (idle 2-core Xeon, 3 rounds alternated)
-    # unpaced runs took 4.19-4.59 s from the first frame to the last pose with 0 against
-    # 4.50-4.77 s with 10, the same poses.
+    # waits for each local BA after the next frame, so a local BA process
+    # (local_ba_process) starved by the work ahead (extraction) holds the tracker. On KITTI
+    # 00 (idle 2-core Xeon, 3 rounds alternated, local BA in its process) unpaced runs took
+    # 4.19-4.59 s from the first frame to the last pose with 0 against 4.50-4.77 s with 10,
+    # the same poses.
     solver_nice: int = 10
     # Niceness added to the local mapping and loop closing threads (Linux): the extraction
     # process and the tracking thread get the CPU before them.
