@@ -16,7 +16,7 @@ import numpy as np
 
 from orbslam_hgcn.config import HgcnTrainConfig
 
-from conftest import SHARED_DATA as SHARED, stand_in
+from conftest import REPLAY_GT, SHARED_DATA as SHARED, stand_in  # noqa: F401 - REPLAY_GT re-exported (vf.REPLAY_GT)
 REAL_TUM_RGB = SHARED / "tum_fr3_long_office_household_sample" / "rgb"
 REAL_EUROC_RGB = SHARED / "euroc_V1_01_easy_first95" / "mav0" / "cam0" / "data"
 
