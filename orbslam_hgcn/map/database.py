@@ -157,11 +157,9 @@ class KeyframeDatabase:
                 arr[:n] = arr[: self._n][keep]
             self._dead[:n] = False
             self._n, self._n_dead = n, 0
-            starts = np.flatnonzero(np.r_[True, self._ids[1:n] != self._ids[: n - 1]]) if n else np.zeros(0, np.int64)
-            ends = np.r_[starts[1:], n]
-            self._rows = {int(self._ids[a]): (int(a), int(b)) for a, b in zip(starts, ends)}
-            for kf in self._bows:  # keyframes without a word
-                self._rows.setdefault(kf, (n, n))
+            # The live rows are the keyframes' vectors in _bows's order, one after the other.
+            ends = np.cumsum([len(b.words) for b in self._bows.values()], dtype=np.int64)
+            self._rows = {kf: (int(b - len(bow.words)), int(b)) for (kf, bow), b in zip(self._bows.items(), ends)}
         return self._ids[: self._n], self._words[: self._n], self._weights[: self._n]
 
     def _sizes(self, ids: np.ndarray) -> np.ndarray:

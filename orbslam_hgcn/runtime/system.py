@@ -448,8 +448,7 @@ class System:
         self.library_threads: dict[str, int] = {}  # set by run(): threads of OpenCV and faiss
         self.ahead_nice = 0  # set by run(): niceness added to the reader and the extraction process
         # Niceness added to the BA processes: threads.solver_nice, but none in an unpaced run
-        # (set by run(); see ThreadsConfig.solver_nice).
-        self._paced = True
+        # (set with the stage runner; see ThreadsConfig.solver_nice).
         self.solver_nice = self.configs.threads.solver_nice
         # Paced runs: per frame processed, how late (ms) its pose came out after the camera
         # would have delivered it; the camera time and wall time the run spanned (s).
@@ -477,7 +476,7 @@ class System:
             else:
                 self._share_map()
                 t = self.configs.threads
-                self.solver_nice = t.solver_nice if self._paced else 0
+                self.solver_nice = t.solver_nice if t.speed > 0 else 0  # run()'s pace
                 self._stages = ThreadedStages(
                     self.mapper, self.loop_closer, t.process_solver, self.solver_nice, t.worker_nice,
                     series=self.keyframe_series, local_ba_process=t.local_ba_process,
@@ -783,8 +782,6 @@ class System:
         # Threaded runs take frames no faster than the camera would deliver them; sequential
         # runs give the same result at any pace.
         pacer = _Pacer(0.0 if self.sequential else threads.speed, threading.Event())
-        if self._stages is None:
-            self._paced = pacer.speed > 0
         self.library_threads = limit_library_threads(threads.library_threads)
         prefetch, frozen = None, False
         try:
