@@ -361,6 +361,9 @@ def _add_synth(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--repeated-texture", action="store_true", default=None,
                    help="one texture patch repeated on every surface (a false-loop test)")
     p.add_argument("--texel-scale", type=float, help="texel sizes times this (coarser, faster) (default 1)")
+    p.add_argument("--draw-distance", type=float, metavar="M",
+                   help="leave surface tiles farther than M metres (along the view) to the background; bounds the "
+                   "render time of long straight streets (default 0: draw everything)")
     p.add_argument("--loop-gt", action="store_true", default=None,
                    help="write loop_gt.npy (frame pairs that revisit a place)")
     p.add_argument("--laps", type=int, help="office loop: times round the desk, each lap beside the others (default 1)")
@@ -383,6 +386,7 @@ def _run_synth(args: argparse.Namespace) -> int:
         "seed": args.seed, "scene_seed": args.scene_seed, "texture_seed": args.texture_seed,
         "repeated_texture": args.repeated_texture, "texel_scale": args.texel_scale, "loop_gt": args.loop_gt,
         "depth": args.depth, "laps": args.laps, "image_format": args.image_format,
+        "draw_distance": args.draw_distance,
     }
     from orbslam_hgcn.outputs import check_output_folder
 

@@ -2,6 +2,7 @@
 blur along the motion, exposure steps, vignetting, JPEG, fog, determinism, presets."""
 
 import json
+import math
 
 import cv2
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 
 from orbslam_hgcn.cli import main
 from orbslam_hgcn.datasets import open_sequence
+from orbslam_hgcn.errors import ConfigError
 from orbslam_hgcn.synth.sequence import (
     KITTI_CAMERA,
     SynthOptions,
@@ -67,6 +69,28 @@ def test_street_depth_matches_ray_cast_and_spans_near_to_far(street):
     assert np.all(hit >= 0)
     rel = np.abs(1.0 / inv_depth[px[:, 1], px[:, 0]] - s) / s
     assert np.median(rel) < 1e-4 and np.mean(rel < 1e-3) > 0.95
+
+
+def test_draw_distance_leaves_far_surfaces_to_the_sky(street):
+    options, scene, poses, stamps, view = street
+    T = poses(stamps[[5]])[0]
+    full_img, full_inv = view.render(T)
+    n_full = view.last_draw_count
+    view.renderer.draw_distance = 40.0
+    try:
+        img, inv = view.render(T)
+        n_near = view.last_draw_count
+    finally:
+        view.renderer.draw_distance = math.inf
+    assert n_near < 0.5 * n_full
+    z_full = np.where(full_inv > 0, 1.0 / np.maximum(full_inv, 1e-9), np.inf)
+    far = np.isfinite(z_full) & (z_full > 80.0)
+    assert far.mean() > 0.01 and np.all(inv[far] == 0)  # the far facades give way to the sky
+    near = z_full < 10.0
+    assert near.mean() > 0.2 and np.mean(np.all(img == full_img, axis=2)[near]) > 0.99  # the near scene is kept
+    with pytest.raises(ConfigError):
+        street_options(draw_distance=-1.0).validate()
+    assert synth_options("street", frames=2, draw_distance=150.0).draw_distance == 150.0
 
 
 def _ncc_find(patch, image, centre, radius):

@@ -24,6 +24,7 @@ units from the surface origin, its centre at ``j + 0.5``.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -210,7 +211,14 @@ def _clip_polygon(P: np.ndarray, planes: np.ndarray) -> np.ndarray:
 
 
 class SceneRenderer:
-    """Renders a :class:`Scene` seen by a pinhole camera at any pose ``T_wc``."""
+    """Renders a :class:`Scene` seen by a pinhole camera at any pose ``T_wc``.
+
+    draw_distance: tiles whose nearest corner lies farther along the optical axis (m) are
+    not drawn (the background shows); infinite by default. A long straight street seen
+    whole otherwise costs thousands of tiles a frame.
+    """
+
+    draw_distance: float = math.inf
 
     def __init__(self, scene: Scene, camera: PinholeCamera, texture_seed: int = 0, repeated: bool = False,
                  progress: bool = False, lod_bias: float = 0.0, texel_scale: float = 1.0,
@@ -265,7 +273,10 @@ class SceneRenderer:
         facing = np.einsum("ij,ij->i", C_s[None] - self._corners[:, 0], self._normals) > 1e-4
         Xc = self._corners @ R.T + t  # (T, 4, 3)
         dist = Xc @ self._planes[:, :3].T + self._planes[:, 3]  # (T, 4, 5)
-        visible = self._choose(facing & ~np.any(np.all(dist < 0, axis=1), axis=1), Xc, C_s)
+        in_view = facing & ~np.any(np.all(dist < 0, axis=1), axis=1)
+        if math.isfinite(self.draw_distance):
+            in_view &= Xc[..., 2].min(axis=1) <= self.draw_distance
+        visible = self._choose(in_view, Xc, C_s)
         idx = np.flatnonzero(visible)
         n_c = self._normals[idx] @ R.T  # (V, 3)
         Xv = Xc[idx]  # (V, 4, 3)

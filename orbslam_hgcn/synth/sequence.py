@@ -41,6 +41,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -122,6 +123,7 @@ class SynthOptions:
     fog: float = 0.0  # fog stretches: contrast lost at the scene's reference depth (0..1)
     laps: int = 1  # the generated loop: times round the desk, each lap beside the others
     image_format: str = "png"  # frame files: "png", or "jpg" (at jpeg_quality, 90 when 0; no in-memory round trip)
+    draw_distance: float = 0.0  # tiles whose nearest corner is farther (m, along the optical axis) are not drawn (0: all)
 
     def __post_init__(self):
         if self.image_format == "jpg" and not self.jpeg_quality:
@@ -160,6 +162,9 @@ class SynthOptions:
             raise ConfigError(f"laps must be at least 1, and more than one only for the office loop, not {self.laps}")
         if self.texel_scale <= 0:
             raise ConfigError(f"texel_scale must be positive, not {self.texel_scale}")
+        if not (math.isfinite(self.draw_distance) and self.draw_distance >= 0):
+            raise ConfigError(f"draw distance must be a finite number of metres >= 0 (0: no limit), "
+                              f"not {self.draw_distance}")
         if self.image_format not in IMAGE_FORMATS:
             raise ConfigError(f"image format must be one of {', '.join(IMAGE_FORMATS)}, not {self.image_format!r}")
 
@@ -303,9 +308,12 @@ def make_renderer(scene, options: SynthOptions, progress: bool = False):
 
         textures = StreetTextures(scene, texture_seed, options.texel_scale)
         renderer = LodSceneRenderer(scene, options.camera, textures, tile_m=STREET_TILE_M)
+        renderer.draw_distance = options.draw_distance or math.inf
         return SkyView(renderer, SkyBackground(options.camera, scene.sun, texture_seed, scene.T_world_scene))
-    return SceneRenderer(scene, options.camera, texture_seed, options.repeated_texture, progress=progress,
-                         texel_scale=options.texel_scale)
+    renderer = SceneRenderer(scene, options.camera, texture_seed, options.repeated_texture, progress=progress,
+                             texel_scale=options.texel_scale)
+    renderer.draw_distance = options.draw_distance or math.inf
+    return renderer
 
 
 def render_frame(renderer: SceneRenderer, poses, t: float, options: SynthOptions,
