@@ -23,11 +23,13 @@ Printed per scenario, mode and load:
 * the run: its wall time, exit status (a run that ended early is reported with a note:
   ``stats.json`` says why), frames tracked, keyframes and map points at the end, points
   created in all, maps, loops closed and maps merged;
-* peak memory: the largest sum of VmRSS (``/proc/PID/status``) over the run's process
-  tree (the run and its child processes: extraction, local and global BA, their helpers),
-  sampled every 0.2 s, and the largest of the run process alone. Pages shared between
-  processes count once per process, so the sum is an upper bound. Linux only (elsewhere
-  the bench says so and prints the rest);
+* peak memory: the largest sum of PSS (proportional set size, ``/proc/PID/smaps_rollup``:
+  a page shared by n processes counts 1/n in each, so the code and libraries that the
+  child processes share with the run count once) over the run's process tree (the run and
+  its child processes: extraction, local and global BA, their helpers), sampled every
+  0.2 s, and the largest VmRSS of the run process alone. Where a process's smaps_rollup
+  cannot be read (kernels before 4.14), its VmRSS counts instead and the report says the
+  sum is an upper bound. Linux only (elsewhere the bench says so and prints the rest);
 * cost growth, from the run's ``series.npz``: tracking ms per frame (frames tracked),
   local mapping ms per keyframe, loop detection ms per keyframe and the keyframe-database
   query ms per keyframe (both over the keyframes whose detection queried the database;
@@ -37,7 +39,7 @@ Printed per scenario, mode and load:
   keyframe at most 1.2x the first quarter's on the street drive (``ok`` or ``OVER``);
 * the map and memory over the run: at the end of each tenth of the frames, the camera
   and wall time, keyframes and map points (counted every 10th frame by the run), the
-  process tree's and the run process's VmRSS at that moment; then how much each grew from
+  process tree's PSS and the run process's VmRSS at that moment; then how much each grew from
   the first tenth to the last. The map's point store keeps culled points (flagged), so
   memory follows the points created rather than those alive;
 * real time: the real-time factor (``real_time.real_time_factor``: camera seconds per
@@ -164,25 +166,39 @@ def process_tree(root: int) -> list[int]:
     return seen
 
 
-def rss_kb(pid: int) -> int | None:
-    """VmRSS of ``pid`` in kB (None: gone, or no resident set, as a zombie)."""
+def _proc_kb(path: str, key: str) -> int | None:
+    """The kB figure of the line starting with ``key`` in a /proc file (None: gone,
+    unreadable, or no such line, as a zombie's VmRSS)."""
     try:
-        with open(f"/proc/{pid}/status") as fh:
+        with open(path) as fh:
             for line in fh:
-                if line.startswith("VmRSS:"):
+                if line.startswith(key):
                     return int(line.split()[1])
     except (OSError, ValueError, IndexError):
         return None
     return None
 
 
+def rss_kb(pid: int) -> int | None:
+    """VmRSS of ``pid`` in kB (None: gone, or no resident set, as a zombie)."""
+    return _proc_kb(f"/proc/{pid}/status", "VmRSS:")
+
+
+def pss_kb(pid: int) -> int | None:
+    """PSS of ``pid`` in kB (its private pages, and 1/n of each page it shares with n - 1
+    other processes); None when gone or when the kernel has no smaps_rollup."""
+    return _proc_kb(f"/proc/{pid}/smaps_rollup", "Pss:")
+
+
 class MemorySampler:
-    """Samples the VmRSS of a process tree every ``interval_s`` on a thread of its own:
-    ``samples`` holds (time.time(), tree kB, root kB, processes)."""
+    """Samples the memory of a process tree every ``interval_s`` on a thread of its own:
+    ``samples`` holds (time.time(), tree kB (sum of PSS), root kB (VmRSS), processes);
+    ``rss_fallbacks`` counts the processes whose PSS could not be read, summed by VmRSS."""
 
     def __init__(self, root: int, interval_s: float = SAMPLE_S) -> None:
         self.root, self.interval_s = root, interval_s
         self.samples: list[tuple[float, int, int, int]] = []
+        self.rss_fallbacks = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="bench-long-memory", daemon=True)
 
@@ -195,7 +211,15 @@ class MemorySampler:
         sizes = {p: rss_kb(p) for p in pids}
         if sizes.get(self.root) is None:
             return None
-        return time.time(), sum(v for v in sizes.values() if v), int(sizes[self.root]), sum(1 for v in sizes.values() if v)
+        tree = 0
+        for p, rss in sizes.items():
+            if not rss:
+                continue
+            pss = pss_kb(p)
+            if pss is None:
+                self.rss_fallbacks += 1
+            tree += rss if pss is None else pss
+        return time.time(), tree, int(sizes[self.root]), sum(1 for v in sizes.values() if v)
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -470,7 +494,8 @@ def run_once(seq: Path, kind: str, mode: str, load: str, hogs: int, cli: list[st
     result: dict[str, Any] = {"exit": rc, "wall_s": wall, "samples": sampler.samples if sampler else [],
                               "peak_tree_mb": sampler.peak_kb / 1024 if sampler else None,
                               "peak_run_mb": sampler.peak_root_kb / 1024 if sampler else None,
-                              "max_processes": sampler.max_processes if sampler else None}  # fmt: skip
+                              "max_processes": sampler.max_processes if sampler else None,
+                              "rss_fallbacks": sampler.rss_fallbacks if sampler else None}  # fmt: skip
     try:
         if not stats_path.is_file():
             tail = " | ".join(stderr.strip().splitlines()[-3:])
@@ -517,6 +542,7 @@ def analyse(r: dict[str, Any], p: dict[str, Any], mode: str = "paced") -> dict[s
         "lag_p95_ms": rt.get("lag_ms", {}).get("p95"), "lag_max_ms": rt.get("lag_ms", {}).get("max"),
         "latency_p95_ms": rt.get("latency_ms", {}).get("p95"), "wall_s": r["wall_s"], "exit": r["exit"],
         "peak_tree_mb": r["peak_tree_mb"], "peak_run_mb": r["peak_run_mb"], "max_processes": r["max_processes"],
+        "rss_fallbacks": r.get("rss_fallbacks"),
         "note": r.get("note"), "mode": mode,
     }  # fmt: skip
     if series is not None:
@@ -536,8 +562,9 @@ def print_report(a: dict[str, Any], p: dict[str, Any], with_target: bool) -> Non
     if a["peak_tree_mb"] is None:
         print("peak memory: not measured (it reads /proc/PID/status: Linux only)")
     else:
-        print(f"peak memory: process tree {a['peak_tree_mb']:.0f} MB (sum of VmRSS, up to {a['max_processes']} "
-              f"processes), run process alone {a['peak_run_mb']:.0f} MB; sampled every {SAMPLE_S:g} s")  # fmt: skip
+        what = "PSS" if not a.get("rss_fallbacks") else "PSS, VmRSS where unreadable: an upper bound"
+        print(f"peak memory: process tree {a['peak_tree_mb']:.0f} MB (sum of {what}, up to {a['max_processes']} "
+              f"processes), run process alone {a['peak_run_mb']:.0f} MB (VmRSS); sampled every {SAMPLE_S:g} s")  # fmt: skip
     what = "camera seconds per wall second" if a["mode"] == "unpaced" else "1.00: kept up with the camera"
     print(f"real time: factor {_f(a['rtf'], '.2f')} ({what}), dropped {a['dropped']}, lag p95 "
           f"{_f(a['lag_p95_ms'], '.0f')} ms, max {_f(a['lag_max_ms'], '.0f')} ms, latency p95 "

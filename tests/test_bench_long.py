@@ -124,8 +124,32 @@ def test_memory_sampler_sums_a_process_tree():
     assert proc.returncode == 0
     assert sampler.peak_root_kb >= 200 * 1024  # VmRSS is in kB (KiB)
     assert sampler.peak_kb >= 300 * 1024 and sampler.peak_kb > sampler.peak_root_kb + 90 * 1024
-    assert sampler.max_processes == 2
+    assert sampler.max_processes == 2 and sampler.rss_fallbacks == 0
     assert bench.rss_kb(proc.pid) is None  # gone
+
+
+@pytest.mark.skipif(not bench.proc_supported(), reason="reads Linux /proc")
+def test_memory_sampler_counts_pages_shared_by_a_fork_once():
+    # 200 MiB written, then a fork: the two processes share the pages (copy on write), so
+    # their VmRSS add up to 400 MiB and more, their PSS to about 200 MiB.
+    code = textwrap.dedent("""
+        import os, time
+        b = bytearray(200 << 20)
+        b[::4096] = b'x' * len(b[::4096])
+        pid = os.fork()
+        time.sleep(2.5)
+        if pid:
+            os.waitpid(pid, 0)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    sampler = bench.MemorySampler(proc.pid, interval_s=0.1).start()
+    try:
+        proc.wait(timeout=60)
+    finally:
+        sampler.stop()
+    assert proc.returncode == 0 and sampler.max_processes == 2 and sampler.rss_fallbacks == 0
+    assert sampler.peak_root_kb >= 200 * 1024  # the parent's VmRSS alone
+    assert 190 * 1024 <= sampler.peak_kb < 300 * 1024  # counted once, not twice
 
 
 def test_series_file_round_trip_and_damage(tmp_path):
