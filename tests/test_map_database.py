@@ -132,3 +132,40 @@ def test_the_growing_store_scores_as_a_database_built_afresh():
                 assert grown.postings(int(query.words[0])) == fresh.postings(int(query.words[0]))
             queries += 1
     assert queries > 50 and len(kept) > 100
+
+
+def test_shared_words_and_scores_match_a_direct_count():
+    """The compiled pass and the grouped fallback (negative ids) both give, per keyframe,
+    the words shared with the query and the sum of min(weights) in increasing word order,
+    bit for bit, with excluded keyframes left out."""
+    import numpy as np
+
+    rng = np.random.default_rng(3)
+
+    def random_bow() -> BowVector:
+        words = np.unique(rng.integers(0, 2000, rng.integers(1, 300)))
+        weights = rng.random(len(words))
+        return BowVector(words, weights / weights.sum())
+
+    for ids in (list(range(0, 120, 2)), list(range(-30, 30))):
+        bows = {k: random_bow() for k in ids}
+        db = KeyframeDatabase()
+        for k, bow in bows.items():
+            db.add(k, bow)
+        query = random_bow()
+        exclude = set(rng.choice(ids, 10).tolist())
+        q = dict(zip(query.words.tolist(), query.weights.astype(np.float64).tolist()))
+        want = {}
+        for k, bow in bows.items():
+            if k in exclude:
+                continue
+            common, score = 0, 0.0
+            for w, v in sorted(zip(bow.words.tolist(), bow.weights.astype(np.float64).tolist())):
+                if w in q:
+                    common, score = common + 1, score + min(v, q[w])
+            if common:
+                want[k] = (common, score)
+        got_ids, got_common, got_scores = db.shared(query, exclude)
+        assert got_ids.tolist() == sorted(want)
+        assert got_common.tolist() == [want[k][0] for k in sorted(want)]
+        assert got_scores.tolist() == [want[k][1] for k in sorted(want)]  # exact

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from orbslam_hgcn.compiled import jit
 from orbslam_hgcn.vocabulary.bow import BowVector
 
 log = logging.getLogger(__name__)
@@ -63,8 +64,9 @@ class KeyframeDatabase:
     query's words. Here the keyframes' sparse vectors are kept side by side in flat arrays
     and a query looks its words up in a dense table over all entries at once: with a few
     thousand words, a query shares most of its words with every keyframe, so the postings
-    touch a large share of the entries anyway, and one vectorised pass over all of them
-    is several times quicker than walking them in Python. :meth:`postings` answers the
+    touch a large share of the entries anyway, and one compiled pass over all of them
+    (:func:`_shared_pass`: a table lookup and two sums per entry, about 3 ms for 1000
+    keyframes of 1000 words) is quicker than walking them. :meth:`postings` answers the
     inverted index's question for callers that want it. The arrays grow in place as
     keyframes are added (a replaced or erased keyframe's entries are marked dead and
     dropped at the next query), so adding a keyframe does not copy the others' entries.
@@ -85,6 +87,11 @@ class KeyframeDatabase:
         self._rows: dict[int, tuple[int, int]] = {}
         self._dead = np.zeros(0, bool)
         self._n_dead = 0
+        # Bounds of the ids and words ever added (a dead entry's may be among them): the
+        # sizes of a query's per-keyframe and per-word tables.
+        self._min_id = 0
+        self._max_id = -1
+        self._max_word = -1
         # Loop queries made so far and the wall time of the last one (ms), for the timings.
         self.loop_queries = 0
         self.last_loop_query_ms = 0.0
@@ -111,6 +118,9 @@ class KeyframeDatabase:
         self._dead[a:b] = False
         self._rows[kf_id] = (a, b)
         self._n = b
+        self._min_id, self._max_id = min(self._min_id, kf_id), max(self._max_id, kf_id)
+        if m:
+            self._max_word = max(self._max_word, int(bow.words.max()))
 
     def erase(self, kf_id: int) -> None:
         """Remove keyframe ``kf_id`` (no effect if absent)."""
@@ -121,6 +131,7 @@ class KeyframeDatabase:
         self._bows.clear()
         self._rows.clear()
         self._n = self._n_dead = 0
+        self._min_id, self._max_id, self._max_word = 0, -1, -1
 
     def _kill(self, kf_id: int) -> None:
         rows = self._rows.pop(kf_id, None)
@@ -178,11 +189,21 @@ class KeyframeDatabase:
         if len(ids) == 0 or len(bow.words) == 0:
             empty = np.zeros(0, np.int64)
             return empty, empty, np.zeros(0, np.float64)
-        size = max(int(words.max()), int(bow.words.max())) + 1
+        size = max(self._max_word, int(bow.words.max())) + 1
         held = np.zeros(size, bool)
         held[bow.words] = True
         query_weight = np.zeros(size, np.float64)
         query_weight[bow.words] = bow.weights
+        if self._min_id >= 0:
+            # One compiled pass: the sums below, in the same order, without the temporaries.
+            excluded = np.zeros(self._max_id + 1, bool)
+            out = [k for k in exclude if 0 <= k <= self._max_id]
+            excluded[np.array(out, np.int64)] = True
+            counts = np.zeros(self._max_id + 1, np.int64)
+            sums = np.zeros(self._max_id + 1, np.float64)
+            _shared_pass(ids, words, weights, held, query_weight, excluded, counts, sums)
+            uniq = np.flatnonzero(counts)
+            return uniq, counts[uniq], sums[uniq]
         hit = held[words]
         if exclude:
             hit &= ~np.isin(ids, np.fromiter(exclude, np.int64, len(exclude)))
@@ -192,12 +213,6 @@ class KeyframeDatabase:
         if len(ids_a) == 0:
             empty = np.zeros(0, np.int64)
             return empty, empty, np.zeros(0, np.float64)
-        # Counted by keyframe id (ids are small non-negative integers): the same sums, in
-        # the same order, as grouping the sorted ids, without the sort.
-        if ids_a.min() >= 0:
-            counts = np.bincount(ids_a)
-            uniq = np.flatnonzero(counts)
-            return uniq, counts[uniq], np.bincount(ids_a, weights=np.minimum(kf_a, q_a))[uniq]
         uniq, inv = np.unique(ids_a, return_inverse=True)
         common = np.bincount(inv, minlength=len(uniq))
         scores = np.bincount(inv, weights=np.minimum(kf_a, q_a), minlength=len(uniq))
@@ -284,3 +299,26 @@ class KeyframeDatabase:
         ]
         out.sort(key=lambda c: (-c.group_score, -c.score, c.kf_id))
         return out
+
+
+@jit
+def _shared_pass(ids, words, weights, held, query_weight, excluded, counts, sums):  # pragma: no cover - compiled
+    """For every entry whose word the query holds and whose keyframe id is not excluded:
+    counts[id] += 1 and sums[id] += min(weight, the query's weight), entry after entry
+    (the order of a grouped sum over the entries)."""
+    for k in range(len(ids)):
+        w = words[k]
+        if held[w]:
+            i = ids[k]
+            if not excluded[i]:
+                counts[i] += 1
+                q = query_weight[w]
+                v = weights[k]
+                sums[i] += v if v < q else q
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the query's kernel."""
+    db = KeyframeDatabase()
+    db.add(0, BowVector(np.array([1, 2], np.int64), np.array([0.5, 0.5])))
+    db.shared(BowVector(np.array([2], np.int64), np.array([1.0])), exclude={5})

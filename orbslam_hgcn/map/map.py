@@ -381,9 +381,18 @@ class Map:
         with self.lock:
             return np.array([kf.id for kf in self._kfs.values() if not kf.bad], dtype=np.int64)
 
-    def n_keyframes(self) -> int:
+    def n_keyframes(self, limit: int | None = None) -> int:
+        """Good keyframes in the map; with ``limit``, counted only up to it (the count
+        then costs at most ``limit`` good keyframes' worth, not the whole map's)."""
         with self.lock:
-            return sum(not kf.bad for kf in self._kfs.values())
+            if limit is None:
+                return sum(not kf.bad for kf in self._kfs.values())
+            n = 0
+            for kf in self._kfs.values():
+                if n >= limit:
+                    break
+                n += not kf.bad
+            return n
 
     def set_keyframe_pose(self, kf_id: int, T_cw: np.ndarray) -> None:
         with self.lock:

@@ -26,6 +26,7 @@ RUN_KERNEL_MODULES = (
     "orbslam_hgcn.match.matching",
     "orbslam_hgcn.geometry.triangulation",
     "orbslam_hgcn.map.mappoint",
+    "orbslam_hgcn.map.database",
     "orbslam_hgcn.datasets.png",
     "orbslam_hgcn.backend.schur_ba",
     "orbslam_hgcn.features.fast",
@@ -82,18 +83,19 @@ def announce_compile(modules: tuple[str, ...] = RUN_KERNEL_MODULES) -> list[str]
 def warm_up_tracking() -> float:
     """Compile (first run after an install) or load from numba's cache the compiled kernels
     of tracking and local mapping (pose-only optimisation, projection search and fusion,
-    triangulation search and checks, map point refresh) and the readers' PNG rows, each
+    triangulation search and checks, map point refresh), the keyframe database's query and
+    the readers' PNG rows, each
     module warming its own; returns the seconds it took. When numba's cache lacks a run's
     kernels (these, local BA's, extraction's) it says first that they are compiled now, once."""
     from orbslam_hgcn.backend import pose_only
     from orbslam_hgcn.datasets import png
     from orbslam_hgcn.geometry import triangulation
-    from orbslam_hgcn.map import mappoint
+    from orbslam_hgcn.map import database, mappoint
     from orbslam_hgcn.match import matching, projection_search
 
     announce_compile()
     t0 = time.perf_counter()
-    for module in (pose_only, projection_search, matching, triangulation, mappoint, png):
+    for module in (pose_only, projection_search, matching, triangulation, mappoint, database, png):
         module.warm_up()
     seconds = time.perf_counter() - t0
     if seconds > 2.0:

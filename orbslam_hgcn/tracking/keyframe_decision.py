@@ -40,7 +40,8 @@ class KeyFrameQuery:
 
     frame_id: current frame; last_kf_frame_id: frame id of the last keyframe;
     last_reloc_frame_id: frame of the last relocalisation (-1: none); n_keyframes: in the
-    map; n_inliers: the frame's inliers after local-map tracking; ref_tracked: points of the
+    map (only compared with small numbers: the tracker counts up to a bound above them);
+    n_inliers: the frame's inliers after local-map tracking; ref_tracked: points of the
     reference keyframe seen by enough keyframes; mapping_idle: local mapping accepts
     keyframes; fps: camera frame rate; timestamp, last_kf_timestamp: camera times of the
     frame and of the last keyframe.

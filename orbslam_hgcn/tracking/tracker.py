@@ -514,7 +514,10 @@ class Tracker:
         if self.localization:
             return None, False
         m = self.map
-        n_kfs = m.n_keyframes()
+        # The rules compare the count with small numbers only: counting past the largest
+        # of them would cost a pass over every keyframe of a long run's map per frame.
+        bound = max(3, max_frames(self.config, frame.camera.fps), self.config.min_keyframe_interval_from) + 1
+        n_kfs = m.n_keyframes(limit=bound)
         ref_id = good_keyframe(m, self.ref_kf_id)
         ref_tracked = 0 if ref_id < 0 else m.tracked_points(ref_id, min_observations(n_kfs))
         q = KeyFrameQuery(
