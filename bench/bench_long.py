@@ -37,6 +37,12 @@ Printed per scenario, mode and load:
   mean in the first and the last quarter of the run (by the frame a keyframe was made
   from) and last/first. The issue's target: the last quarter's cost per frame and per
   keyframe at most 1.2x the first quarter's on the street drive (``ok`` or ``OVER``);
+* the scene's part and the map's (``--tail-alone``, on by default): the last quarter of
+  the sequence is run again on its own, from a fresh map, in the same mode; its tracking
+  ms per frame and local mapping ms per keyframe (medians, leaving out its first tenth,
+  where the map starts) against the full run's last quarter. The full run's cost over the
+  tail's alone is what the map grown over the first three quarters adds (1.00: nothing);
+  the tail's alone over the full run's first quarter is what the scene adds;
 * the map and memory over the run: at the end of each tenth of the frames, the camera
   and wall time, keyframes and map points (counted every 10th frame by the run), the
   process tree's PSS and the run process's VmRSS at that moment; then how much each grew from
@@ -57,16 +63,18 @@ Printed per scenario, mode and load:
   made over half a lap earlier), else ``not joined``; with the first frame and the share
   of frames tracked against an earlier lap's keyframes, and the times tracking was lost.
 
-The full bench (both scenarios, both modes, one load) takes about 15-20 minutes on 2
-cores (450 s + 240 s of paced runs and the unpaced ones), and the renders about 15 minutes
-more the first time (estimates from the smoke run's rates). A progress line is printed per
+The full bench (both scenarios, both modes, one load) takes about 20 minutes on 2 cores
+(450 s + 240 s of paced runs, the unpaced ones, and each last quarter again: the street's
+runs 9.5 minutes and its tails about 2.5, the office's 6.3 and 2), and the renders about
+18 minutes more the first time (street 13, office 5). A progress line is printed per
 phase (render, run) and every minute of a run.
 
 Usage::
 
     python bench/bench_long.py [--scenarios street office] [--modes unpaced paced]
                                [--load none|nice19|hog ...] [--hog N] [--duration-scale F]
-                               [--data DIR] [--keep DIR] [--json FILE] [--record NAME]
+                               [--data DIR] [--keep DIR] [--json FILE] [--no-tail-alone]
+                               [--record NAME]
 """
 
 from __future__ import annotations
@@ -402,6 +410,67 @@ def _lap_text(lap: dict) -> str:
     return "; ".join(parts)
 
 
+# --- the last quarter alone ------------------------------------------------------------------
+def tail_sequence(seq: Path, kind: str, start: int, dest: Path) -> Path:
+    """A sequence of the frames ``start``.. of ``seq`` (as rendered: TUM or KITTI layout),
+    made under ``dest`` of links to the same image files; returns the folder to run."""
+    dest.mkdir(parents=True, exist_ok=True)
+    if kind == "kitti":
+        root = seq.parent.parent  # .../sequences/NN -> the folder holding poses/
+        out = dest / "sequences" / seq.name
+        (out / "image_0").mkdir(parents=True, exist_ok=True)
+        times = [t for t in (seq / "times.txt").read_text().splitlines() if t.strip()]
+        (out / "times.txt").write_text("\n".join(times[start:]) + "\n")
+        shutil.copy(seq / "calib.txt", out / "calib.txt")
+        images = sorted((seq / "image_0").iterdir())
+        for i, img in enumerate(images[start:]):
+            (out / "image_0" / f"{i:06d}{img.suffix}").symlink_to(img.resolve())
+        poses = root / "poses" / f"{seq.name}.txt"
+        if poses.is_file():
+            (dest / "poses").mkdir(exist_ok=True)
+            rows = [r for r in poses.read_text().splitlines() if r.strip()]
+            (dest / "poses" / poses.name).write_text("\n".join(rows[start:]) + "\n")
+        return out
+    lines = (seq / "rgb.txt").read_text().splitlines()
+    head = [ln for ln in lines if ln.startswith("#")]
+    rows = [ln for ln in lines if ln.strip() and not ln.startswith("#")]
+    (dest / "rgb.txt").write_text("\n".join(head + rows[start:]) + "\n")
+    for name in ("rgb", "groundtruth.txt", "camera.yaml"):
+        if (seq / name).exists():
+            (dest / name).symlink_to((seq / name).resolve())
+    return dest
+
+
+def tail_costs(series: dict[str, np.ndarray]) -> dict[str, float]:
+    """Median tracking ms per frame and local mapping ms per keyframe of a run of the last
+    quarter alone, leaving out its first tenth (the map's start)."""
+    frames = series["frame"]
+    if len(frames) == 0:
+        return {}
+    lo, hi = float(frames.min()), float(frames.max())
+    skip = lo + 0.1 * (hi - lo + 1)
+    out = {}
+    for name, index, values in (("tracking ms/frame", frames, series["tracking_ms"]),
+                                ("local mapping ms/kf", series["kf_frame"], series["kf_mapping_ms"])):  # fmt: skip
+        index, values = np.asarray(index, np.float64), np.asarray(values, np.float64)
+        v = values[(index >= skip) & np.isfinite(values)]
+        out[name] = float(np.median(v)) if len(v) else math.nan
+    return out
+
+
+def tail_comparison(full: dict[str, Any], alone: dict[str, float]) -> dict[str, dict[str, float]]:
+    """Per cost: the full run's first and last quarter medians, the last quarter's alone,
+    ``map`` (full run's last quarter / alone) and ``scene`` (alone / full run's first)."""
+    out = {}
+    for name, a in alone.items():
+        q = full.get("growth", {}).get(name)
+        if q is None:
+            continue
+        first, last = q["first"]["median"], q["last"]["median"]
+        out[name] = {"first": first, "last": last, "alone": a, "map": _ratio(a, last), "scene": _ratio(first, a)}
+    return out
+
+
 # --- rendering and running -----------------------------------------------------------------
 def plan(name: str, scale: float) -> dict[str, Any]:
     """The render of scenario ``name`` at ``scale`` times its length: duration, frames,
@@ -524,6 +593,31 @@ def run_once(seq: Path, kind: str, mode: str, load: str, hogs: int, cli: list[st
 
 
 # --- the report ------------------------------------------------------------------------------
+def run_tail(seq: Path, p: dict, mode: str, load: str, hogs: int, cli: list[str], label: str,
+             keep: Path | None, fig: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
+    """Run the last quarter of ``seq`` alone (:func:`tail_sequence`) in ``mode`` beside
+    ``load``, print and return its comparison with the full run's figures ``fig``."""
+    start = int(round(0.75 * p["frames"]))
+    with tempfile.TemporaryDirectory(prefix="bench_long_tail_") as tmp:
+        tail = tail_sequence(seq, p["kind"], start, Path(tmp))
+        r = run_once(tail, p["kind"], mode, load, hogs, cli, f"{label}/tail", keep)
+    if "series" not in r:
+        print(f"last quarter alone: the run failed ({r.get('error', 'no series.npz')})\n")
+        return {"error": r.get("error", "no series.npz")}
+    cmp = tail_comparison(fig, tail_costs(r["series"]))
+    print(f"\nthe last quarter (frames {start}-{p['frames'] - 1}) run alone from a fresh map, {mode}: "
+          f"tracked {r['stats']['frames']['tracked']} of {r['stats']['frames']['frames']}; medians, its first tenth "
+          "left out")  # fmt: skip
+    row = "{:<21} {:>9} {:>9} {:>9} {:>11} {:>11}"
+    print(row.format("", "first1", "last4", "alone4", "map: 4/alone", "scene: alone/1"))
+    for name, c in cmp.items():
+        print(row.format(name, _f(c["first"], ".2f"), _f(c["last"], ".2f"), _f(c["alone"], ".2f"),
+                         _f(c["map"], ".2f") + "x", _f(c["scene"], ".2f") + "x"))  # fmt: skip
+    print("(map: what the map grown over the first three quarters adds to the last quarter's cost; scene: what the "
+          "last quarter's frames cost more than the first's on their own)\n", flush=True)  # fmt: skip
+    return cmp
+
+
 def _f(x: Any, fmt: str) -> str:
     return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else format(x, fmt)
 
@@ -611,6 +705,9 @@ def _record_value(a: dict[str, Any]) -> str:
     parts += [f"keyframes {a['keyframes']}", f"map points {a['map_points']}", f"loops {a['loops']}",
               f"merges {a['merges']}", f"tracked {a['tracked']} of {a['frames']}", f"real-time factor {_f(a['rtf'], '.2f')}",
               f"dropped {a['dropped']}"]  # fmt: skip
+    for name, c in a.get("tail", {}).items():
+        if isinstance(c, dict):
+            parts.append(f"{name} last quarter in the run / alone {_f(c['map'], '.2f')}x")
     if "laps" in a:
         later = [lap for lap in a["laps"] if lap["lap"] > 1]
         parts.append(f"laps joined {sum(lap['verdict'] != 'not joined' for lap in later)} of {len(later)}")
@@ -634,6 +731,9 @@ def main() -> int:
                     help="where the renders are kept (default ~/.cache/orbslam_hgcn/bench_long)")
     ap.add_argument("--keep", default=None, metavar="DIR", help="keep every run's output folder under DIR")
     ap.add_argument("--json", default=None, help="also write every run's figures to this file")
+    ap.add_argument("--no-tail-alone", dest="tail_alone", action="store_false",
+                    help="do not run each sequence's last quarter again on its own (the scene's part of the "
+                    "growth against the map's)")
     ap.add_argument("--record", default=None, metavar="NAME",
                     help="write the figures to bench/results/NAME.json (bench/figures.py)")
     a = ap.parse_args()
@@ -682,6 +782,8 @@ def main() -> int:
                 print_report(fig, p, with_target=(name == "street"))
                 print(flush=True)
                 results[label] = fig
+                if a.tail_alone and "growth" in fig:
+                    fig["tail"] = run_tail(seq, p, mode, load, a.hog, cli, label, keep, fig)
     print(f"bench_long: done in {(time.perf_counter() - t_start) / 60:.1f} min"
           + (f"; {failed} run(s) or render(s) failed" if failed else ""))  # fmt: skip
     if a.json:

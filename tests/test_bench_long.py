@@ -12,7 +12,8 @@ import textwrap
 import numpy as np
 import pytest
 
-from conftest import load_bench
+from conftest import SHARED_DATA, load_bench
+from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.errors import OrbslamError
 from orbslam_hgcn.runtime.results import read_series, write_series
 
@@ -160,6 +161,33 @@ def test_series_file_round_trip_and_damage(tmp_path):
     path.write_bytes(path.read_bytes()[:50])
     with pytest.raises(OrbslamError, match="series"):
         read_series(path)
+
+
+def test_tail_sequence_holds_the_last_frames_of_either_layout(synth_replay_100, tmp_path):
+    kitti = SHARED_DATA / "kitti00_first160" / "sequences" / "00"
+    for kind, seq, start in (("kitti", kitti, 120), ("tum", synth_replay_100, 75)):
+        full = open_sequence(kind, seq)
+        tail = open_sequence(kind, bench.tail_sequence(seq, kind, start, tmp_path / kind))
+        assert len(tail) == len(full) - start
+        np.testing.assert_array_equal(tail.timestamps, full.timestamps[start:])
+        for i in (0, len(tail) - 1):
+            np.testing.assert_array_equal(tail[i].image, full[start + i].image)
+        assert tail.ground_truth is not None
+        np.testing.assert_allclose(tail.ground_truth.poses[0], full.ground_truth.poses[start]
+                                   if kind == "kitti" else full.ground_truth.poses[0])  # fmt: skip
+        assert tail.camera.K.tolist() == full.camera.K.tolist()
+
+
+def test_tail_costs_leave_out_the_maps_start_and_split_map_from_scene():
+    tracking = np.r_[np.full(10, 50.0), np.full(90, 4.0)]  # the first tenth: the map's start
+    alone = bench.tail_costs(_series(tracking_ms=tracking, kf_frame=np.array([2, 30, 60, 90]),
+                                     kf_mapping_ms=np.array([500.0, 60.0, 60.0, 62.0])))  # fmt: skip
+    assert alone == {"tracking ms/frame": 4.0, "local mapping ms/kf": 60.0}
+    full = {"growth": {"tracking ms/frame": {"first": {"median": 2.0}, "last": {"median": 5.0}},
+                       "local mapping ms/kf": {"first": {"median": 40.0}, "last": {"median": 60.0}}}}  # fmt: skip
+    cmp = bench.tail_comparison(full, alone)
+    assert cmp["tracking ms/frame"]["map"] == pytest.approx(1.25) and cmp["tracking ms/frame"]["scene"] == 2.0
+    assert cmp["local mapping ms/kf"]["map"] == 1.0 and cmp["local mapping ms/kf"]["scene"] == 1.5
 
 
 def test_a_run_that_writes_nothing_is_an_error_not_a_traceback(tmp_path):
