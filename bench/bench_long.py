@@ -225,6 +225,8 @@ class MemorySampler:
                 continue
             pss = pss_kb(p)
             if pss is None:
+                if not rss_kb(p):
+                    continue  # it ended between the two reads (a helper process): not counted
                 self.rss_fallbacks += 1
             tree += rss if pss is None else pss
         return time.time(), tree, int(sizes[self.root]), sum(1 for v in sizes.values() if v)
