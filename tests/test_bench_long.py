@@ -105,6 +105,17 @@ def test_lap_evidence_names_the_earliest_way_each_lap_joined():
     assert "loop closed at frame 160 with frame 20" in bench._lap_text(laps[1])
 
 
+def _sampled(code: str):
+    """Run ``python -c code`` to its end with a MemorySampler on it: (process, sampler)."""
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    sampler = bench.MemorySampler(proc.pid, interval_s=0.1).start()
+    try:
+        proc.wait(timeout=60)
+    finally:
+        sampler.stop()
+    return proc, sampler
+
+
 @pytest.mark.skipif(not bench.proc_supported(), reason="reads Linux /proc")
 def test_memory_sampler_sums_a_process_tree():
     # A child holding 200 MiB whose own child holds 100 MiB, both for 2.5 s.
@@ -116,12 +127,7 @@ def test_memory_sampler_sums_a_process_tree():
         time.sleep(2.5)
         p.wait()
     """)
-    proc = subprocess.Popen([sys.executable, "-c", child])
-    sampler = bench.MemorySampler(proc.pid, interval_s=0.1).start()
-    try:
-        proc.wait(timeout=60)
-    finally:
-        sampler.stop()
+    proc, sampler = _sampled(child)
     assert proc.returncode == 0
     assert sampler.peak_root_kb >= 200 * 1024  # VmRSS is in kB (KiB)
     assert sampler.peak_kb >= 300 * 1024 and sampler.peak_kb > sampler.peak_root_kb + 90 * 1024
@@ -142,12 +148,7 @@ def test_memory_sampler_counts_pages_shared_by_a_fork_once():
         if pid:
             os.waitpid(pid, 0)
     """)
-    proc = subprocess.Popen([sys.executable, "-c", code])
-    sampler = bench.MemorySampler(proc.pid, interval_s=0.1).start()
-    try:
-        proc.wait(timeout=60)
-    finally:
-        sampler.stop()
+    proc, sampler = _sampled(code)
     assert proc.returncode == 0 and sampler.max_processes == 2 and sampler.rss_fallbacks == 0
     assert sampler.peak_root_kb >= 200 * 1024  # the parent's VmRSS alone
     assert 190 * 1024 <= sampler.peak_kb < 300 * 1024  # counted once, not twice
