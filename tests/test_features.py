@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from orbslam_hgcn.config import ORBConfig, load_camera
-from orbslam_hgcn.features.distribute import distribute_quadtree, features_per_level, quadtree_keys
+from orbslam_hgcn.features.distribute import cell_ids, distribute_quadtree, features_per_level, quadtree_keys
 from orbslam_hgcn.features.orb import ORBExtractor, circular_patch_offsets, ic_angles
-from orbslam_hgcn.features.pyramid import build_pyramid
+from orbslam_hgcn.features.pyramid import PyramidMaps, build_pyramid
 from orbslam_hgcn.features.rbrief import opencv_rbrief
 
 TUM_FRAME = "rgb/1341847980.722988.png"
@@ -130,6 +130,30 @@ def test_quadtree_over_levels_keeps_the_wanted_count_and_the_strongest_of_a_node
         distribute_quadtree(np.array([-1, 5]), np.ones(2), np.array([1]))
     with pytest.raises(ValueError, match="quadtree keys"):
         distribute_quadtree(keys, resp, np.array([100]))  # level 1 has no entry
+
+
+@pytest.mark.parametrize("size", [(1241, 376, 1.2, 8, 30.0), (752, 480, 1.2, 8, 35.0), (60, 45, 1.5, 4, 20.0)])
+def test_pyramid_tables_equal_the_cell_and_key_of_every_pixel(size):
+    # The tables are filled from one row and one column of each level; they must hold
+    # cell_ids and quadtree_keys of every pixel, -1 outside the detection area, and each
+    # cell's box must be the bounding box of its pixels.
+    width, height, scale, levels, cell = size
+    maps = PyramidMaps.create(width, height, scale, levels, 19, cell)
+    lo = 19 - 3
+    for level, (w, h) in enumerate(maps.sizes):
+        yy, xx = np.mgrid[0:h, 0:w]
+        inside = (xx >= lo) & (xx < w - lo) & (yy >= lo) & (yy < h - lo)
+        x, y = xx[inside].astype(np.float64), yy[inside].astype(np.float64)
+        g = np.full(len(x), level)
+        assert (maps.cell_maps[level][~inside] == -1).all() and (maps.key_maps[level][~inside] == -1).all()
+        np.testing.assert_array_equal(maps.cell_maps[level][inside], cell_ids(x, y, g, maps.bounds, cell))
+        np.testing.assert_array_equal(maps.key_maps[level][inside], quadtree_keys(x, y, g, maps.bounds))
+        cells = maps.cell_maps[level][inside]
+        for c in np.unique(cells)[:: max(1, len(np.unique(cells)) // 25)]:
+            px, py = xx[inside][cells == c], yy[inside][cells == c]
+            assert tuple(maps.cell_boxes[c]) == (px.min(), px.max() + 1, py.min(), py.max() + 1)
+        if len(cells):  # the smallest levels have no detection area
+            assert maps.level_cells[level] <= cells.min() and cells.max() < maps.level_cells[level + 1]
 
 
 def test_weak_corners_only_where_a_cell_has_no_strong_one(extractor):

@@ -72,39 +72,74 @@ class PyramidMaps:
     def create(
         cls, width: int, height: int, scale_factor: float, n_levels: int, edge: int, cell_size: float
     ) -> PyramidMaps:
-        """Evaluate the cell and key functions once for every pixel of every level."""
+        """Evaluate the cell and key functions for every pixel of every level.
+
+        Both are separable: a cell is ``first + row * n_cols + column`` and a key the
+        disjoint bit fields ``level | root and x bits | y bits``, so the value at (x, y)
+        is ``f(x, y0) + f(x0, y) - f(x0, y0)`` (``^`` for the keys). The tables are filled
+        from one row and one column of each level (a few milliseconds at KITTI's size,
+        against 0.2 s for every pixel), and each cell's box from the ranges of its row
+        and column."""
         sizes = level_sizes(width, height, scale_factor, n_levels)
         lo = edge - MARGIN  # ORB-SLAM's detection area starts edge - 3 in
         bounds = np.array([[lo, w - lo, lo, h - lo] for w, h in sizes], dtype=np.float64)
-        cell_maps, key_maps = [], []
+        cell_maps, key_maps, boxes_of = [], [], []
         for level, (w, h) in enumerate(sizes):
             cmap = np.full((h, w), -1, dtype=np.int32)
             kmap = np.full((h, w), -1, dtype=np.int64)
             if w > 2 * lo and h > 2 * lo:
-                yy, xx = np.mgrid[lo : h - lo, lo : w - lo]
-                x = xx.ravel().astype(np.float64)
-                y = yy.ravel().astype(np.float64)
+                xs = np.arange(lo, w - lo, dtype=np.int64)
+                ys = np.arange(lo, h - lo, dtype=np.int64)
+                # One row (y = lo), one column (x = lo), and their corner last.
+                x = np.concatenate([xs, np.full(len(ys), lo), [lo]]).astype(np.float64)
+                y = np.concatenate([np.full(len(xs), lo), ys, [lo]]).astype(np.float64)
                 g = np.full(len(x), level, dtype=np.int64)
                 cells = cell_ids(x, y, g, bounds, cell_size)
-                cmap[lo : h - lo, lo : w - lo] = cells.reshape(yy.shape)
-                kmap[lo : h - lo, lo : w - lo] = quadtree_keys(x, y, g, bounds).reshape(yy.shape)
+                keys = quadtree_keys(x, y, g, bounds)
+                n = len(xs)
+                col_c, row_c, corner_c = cells[:n], cells[n:-1], cells[-1]
+                col_k, row_k, corner_k = keys[:n], keys[n:-1], keys[-1]
+                cmap[lo : h - lo, lo : w - lo] = row_c[:, None] + (col_c - corner_c)[None, :]
+                kmap[lo : h - lo, lo : w - lo] = row_k[:, None] ^ (col_k ^ corner_k)[None, :]
+                boxes_of.append(_cell_boxes(xs, ys, col_c, row_c, corner_c))
             cell_maps.append(cmap)
             key_maps.append(kmap)
         n_cells = max((int(c.max()) + 1 for c in cell_maps), default=0)
         big = np.iinfo(np.int64).max
         x0, y0 = np.full(n_cells, big, np.int64), np.full(n_cells, big, np.int64)
         x1, y1 = np.full(n_cells, -1, np.int64), np.full(n_cells, -1, np.int64)
+        for ids, bx0, bx1, by0, by1 in boxes_of:
+            x0[ids], x1[ids], y0[ids], y1[ids] = bx0, bx1, by0, by1
         level_cells = np.zeros(len(sizes) + 1, dtype=np.int64)
         for level, cmap in enumerate(cell_maps):
-            ys, xs = np.nonzero(cmap >= 0)
-            ids = cmap[ys, xs]
-            np.minimum.at(x0, ids, xs)
-            np.maximum.at(x1, ids, xs + 1)
-            np.minimum.at(y0, ids, ys)
-            np.maximum.at(y1, ids, ys + 1)
             level_cells[level + 1] = max(level_cells[level], int(cmap.max()) + 1)
         boxes = np.stack([x0, x1, y0, y1], axis=1)
         return cls(np.asarray(sizes, dtype=np.int64), bounds, cell_maps, key_maps, boxes, level_cells)
+
+
+def _cell_boxes(
+    xs: np.ndarray, ys: np.ndarray, col_cells: np.ndarray, row_cells: np.ndarray, corner: int
+) -> tuple[np.ndarray, ...]:
+    """The cells of one level and their boxes: (ids, x0, x1, y0, y1), each (R, C) for the
+    level's R rows and C columns of cells. ``col_cells``: the cells along the first row
+    (one per pixel column ``xs``), ``row_cells`` along the first column (pixel rows ``ys``),
+    ``corner`` the cell of their first pixel; a cell's x range is its column's, its y range
+    its row's."""
+    big = np.iinfo(np.int64).max
+
+    def ranges(values: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, ...]:
+        unique, inverse = np.unique(values, return_inverse=True)
+        first, last = np.full(len(unique), big, np.int64), np.full(len(unique), -1, np.int64)
+        np.minimum.at(first, inverse, pixels)
+        np.maximum.at(last, inverse, pixels + 1)
+        return unique, first, last
+
+    cols, bx0, bx1 = ranges(col_cells, xs)
+    rows, by0, by1 = ranges(row_cells, ys)
+    ids = rows[:, None] + (cols - corner)[None, :]
+    shape = ids.shape
+    return (ids, np.broadcast_to(bx0[None, :], shape), np.broadcast_to(bx1[None, :], shape),
+            np.broadcast_to(by0[:, None], shape), np.broadcast_to(by1[:, None], shape))  # fmt: skip
 
 
 @functools.lru_cache(maxsize=8)
