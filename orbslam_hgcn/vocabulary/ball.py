@@ -17,7 +17,6 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-import faiss
 import numpy as np
 
 from orbslam_hgcn.compiled import jit
@@ -259,6 +258,7 @@ class PrototypeSearch:
         q = self.lift(h)
         if exact:
             configure_faiss()
+            import faiss
             index = faiss.IndexFlatL2(self.dim)
             index.add(self.points)
             with faiss_threads(len(q)):

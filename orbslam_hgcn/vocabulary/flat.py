@@ -27,7 +27,6 @@ import logging
 import time
 from pathlib import Path
 
-import faiss
 import numpy as np
 
 from orbslam_hgcn.config import HgcnTrainConfig
@@ -52,6 +51,7 @@ def kmeans(x: np.ndarray, k: int, niter: int, seed: int, points_per_centroid: in
     ``points_per_centroid * k`` rows (faiss subsamples)."""
     configure_faiss()
     x = np.ascontiguousarray(x, dtype=np.float32)
+    import faiss
     km = faiss.Kmeans(x.shape[1], k, niter=niter, seed=seed, max_points_per_centroid=points_per_centroid,
                       min_points_per_centroid=1, verbose=False)
     km.train(x)
@@ -61,6 +61,7 @@ def kmeans(x: np.ndarray, k: int, niter: int, seed: int, points_per_centroid: in
 def nearest(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """(N,) int64 index of the nearest centre of every row (exact, faiss flat)."""
     configure_faiss()
+    import faiss
     index = faiss.IndexFlatL2(centres.shape[1])
     index.add(np.ascontiguousarray(centres, dtype=np.float32))
     return index.search(np.ascontiguousarray(x, dtype=np.float32), 1)[1][:, 0]
@@ -80,6 +81,7 @@ class PointIndex:
             self.index = None
             self.probed = ProbedSearch(self.points)
         else:
+            import faiss
             self._quantizer = faiss.IndexFlatL2(d)  # kept alive: the IVF index does not own it
             self._quantizer.add(self.lists)
             self.index = faiss.IndexIVFFlat(self._quantizer, d, len(self.lists))

@@ -5,6 +5,9 @@ Following the paper ("Semi-supervised Vector-Quantization in Visual SLAM using H
 dimensions by PCA; the graph links each descriptor to its k = 9 nearest neighbours in that
 space (faiss), is made symmetric, and is normalised as in Kipf & Welling's GCN (ICLR 2017):
 ``A_hat = D^-1/2 (A + I) D^-1/2``.
+
+faiss is imported where it is used, here and in :mod:`.ball` and :mod:`.flat`: a run with a
+binary vocabulary never loads it (about 50 ms of its start-up).
 """
 
 from __future__ import annotations
@@ -13,7 +16,6 @@ import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import faiss
 import numpy as np
 
 from orbslam_hgcn.compiled import jit
@@ -35,6 +37,7 @@ def configure_faiss() -> None:
     (``distance_compute_blas_threshold``); below that, 1000 queries against 10k 20-D
     vectors took ~100-190 ms here against ~8 ms with BLAS (same results).
     """
+    import faiss
     faiss.cvar.distance_compute_blas_threshold = 20
 
 
@@ -58,11 +61,13 @@ class faiss_threads:
 
     def __enter__(self) -> None:
         if self.small:
+            import faiss
             self.saved = faiss.omp_get_max_threads()
             faiss.omp_set_num_threads(1)
 
     def __exit__(self, *exc: object) -> None:
         if self.small:
+            import faiss
             faiss.omp_set_num_threads(self.saved)
 
 
@@ -161,6 +166,7 @@ def knn(x: np.ndarray, k: int, exact_max: int = 60_000, nprobe: int = 16, seed: 
     (IndexIVFFlat, 4 sqrt(N) lists, ``nprobe`` probed), which is approximate. Where an
     approximate search finds fewer than k others, the missing entries are -1.
     """
+    import faiss
     configure_faiss()
     x = np.ascontiguousarray(x, dtype=np.float32)
     n, d = x.shape
