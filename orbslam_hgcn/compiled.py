@@ -1,8 +1,9 @@
 """The numba settings of every compiled kernel: the :data:`jit` decorator.
 
-A leaf module: it imports numba and numpy only, and the kernel modules import it. The
-kernels are compiled without the GIL, so other threads run meanwhile, and cached on disk
-beside their modules (or in numba's user cache when the package folder is read-only).
+A leaf module: it imports numpy, numba (when the kernels are not built ahead of time) and
+:mod:`orbslam_hgcn.aot`, and the kernel modules import it. The kernels are compiled without
+the GIL, so other threads run meanwhile, and cached on disk beside their modules (or in
+numba's user cache when the package folder is read-only).
 
 Two steps of tracking run on every frame over a few hundred points, where numpy's
 per-call overhead on small arrays outweighs the arithmetic: the pose-only optimisation
@@ -24,14 +25,37 @@ a tiny problem with the argument types of a real run. The system calls them befo
 first frame (:func:`orbslam_hgcn.runtime.system.warm_up_kernels`; local BA's in the
 solver that runs it, extraction's in the extractor or its process), so that the time is
 not spent inside a frame.
+
+``tools/setup.sh`` builds them ahead of time as well (:mod:`orbslam_hgcn.aot`): while that
+build matches the sources and the machine, :func:`jit` gives each kernel its built versions
+and numba is not imported at all, unless a kernel is called with arguments of a type it was
+not built for.
 """
 
 from __future__ import annotations
 
-import numba
+from typing import Any, Callable
+
 import numpy as np
 
-jit = numba.njit(cache=True, nogil=True)
+from orbslam_hgcn import aot
+
+# The kernels built ahead of time (None: numba compiles them, or loads them from its cache).
+BUILT = aot.load()
+
+
+def jit(func: Callable[..., Any] | None = None, **options: Any) -> Any:
+    """Compile ``func`` as a kernel: ``numba.njit(cache=True, nogil=True, **options)``, or
+    its versions built ahead of time (:data:`BUILT`). ``@jit`` or ``@jit(fastmath=...)``."""
+
+    def wrap(f: Callable[..., Any]) -> Any:
+        if BUILT is not None:
+            return aot.Kernel(f, options, BUILT.exports(f"{f.__module__}.{f.__qualname__}"))
+        import numba
+
+        return numba.njit(cache=True, nogil=True, **options)(f)
+
+    return wrap if func is None else wrap(func)
 
 
 @jit

@@ -98,10 +98,10 @@ _COLD_CACHE = textwrap.dedent("""
 
 
 def test_the_first_run_says_it_compiles_the_kernels_before_it_does(tmp_path):
-    """With numba's cache empty (NUMBA_CACHE_DIR), warming the kernels first logs that the
-    first run after an install compiles them once and later runs load them; with every
-    kernel cached it says nothing."""
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    """Without the kernels built ahead of time and with numba's cache empty
+    (NUMBA_CACHE_DIR), warming the kernels first logs that the first run after an install
+    compiles them once and later runs load them; with every kernel cached it says nothing."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "ORBSLAM_HGCN_AOT": "0"}
     r = subprocess.run([sys.executable, "-c", _COLD_CACHE], env=env, capture_output=True, text=True, timeout=120,
                        cwd=REPO)  # fmt: skip
     assert r.returncode == 0, r.stderr
@@ -117,11 +117,13 @@ def _cache_files(folder: Path) -> dict[str, int]:
 
 
 def test_a_run_after_warming_the_kernels_compiles_nothing(tmp_path, kitti_sample):
-    """tools/setup.sh warms the kernels (``python -m orbslam_hgcn.runtime.kernels``); a user's
-    first run after it, on real KITTI frames with the default vocabulary (initialisation,
-    tracking, keyframes, local mapping and BA), finds every kernel it needs in the cache: it
-    writes nothing to numba's cache and does not say it compiles."""
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    """Where the kernels cannot be built ahead of time (here: turned off),
+    ``python -m orbslam_hgcn.runtime.kernels`` (tools/setup.sh) compiles them into numba's
+    cache; a user's first run after it, on real KITTI frames with the default vocabulary
+    (initialisation, tracking, keyframes, local mapping and BA), finds every kernel it needs
+    in the cache: it writes nothing to numba's cache and does not say it compiles. (With
+    the build, tests/test_aot.py.)"""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "ORBSLAM_HGCN_AOT": "0"}
     warm = subprocess.run([sys.executable, "-m", "orbslam_hgcn.runtime.kernels"], env=env, capture_output=True,
                           text=True, timeout=600, cwd=REPO)  # fmt: skip
     assert warm.returncode == 0, warm.stderr

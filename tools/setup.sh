@@ -19,6 +19,9 @@ if [ ! -f "$stamp" ]; then
     rm -f .venv/.installed-*
     touch "$stamp"
 fi
-# Compile the numba kernels once now rather than in the first run (40 to 60 s on 2 cores);
-# returns at once when numba's cache already holds them.
+# Byte-compile the package (an editable install does not), so that no run compiles source.
+.venv/bin/python -m compileall -q orbslam_hgcn >/dev/null
+# Build the compiled kernels for this machine now rather than in the first run (about a
+# minute on 2 cores; a run then loads them without numba); returns at once when the build
+# is up to date, and falls back to numba's cache when it cannot build.
 .venv/bin/python -m orbslam_hgcn.runtime.kernels

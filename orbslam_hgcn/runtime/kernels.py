@@ -5,7 +5,9 @@ The first run after an install compiles them (40 to 60 s on a 2-core machine: tr
 and local mapping's kernels, local BA's, ORB extraction's); later runs load them from the
 cache in about a second (see :mod:`orbslam_hgcn.compiled`). A run says so before it
 compiles (:func:`announce_compile`). ``python -m orbslam_hgcn.runtime.kernels`` (run by
-``tools/setup.sh``) compiles every one that is not cached, and returns at once when all are.
+``tools/setup.sh``) builds them ahead of time (:mod:`orbslam_hgcn.aot`; runs then load
+them without numba), or, where that build fails, compiles every one that is not in numba's
+cache; it returns at once when the build is up to date.
 """
 
 from __future__ import annotations
@@ -54,7 +56,12 @@ def _cached(dispatcher) -> bool:
 
 def cold_modules(modules: tuple[str, ...] = RUN_KERNEL_MODULES) -> list[str]:
     """The modules of ``modules`` with a kernel that numba's cache does not hold (they are
-    compiled on first use); cheap: reads the cache's index files."""
+    compiled on first use); cheap: reads the cache's index files. None while the kernels
+    built ahead of time are in use (numba is not even imported then)."""
+    from orbslam_hgcn import compiled
+
+    if compiled.BUILT is not None:
+        return []
     from numba.core.registry import CPUDispatcher
 
     cold = []
@@ -140,9 +147,35 @@ def warm_all() -> float:
     return time.perf_counter() - t0
 
 
+def build_ahead() -> bool:
+    """Build every kernel ahead of time (:mod:`orbslam_hgcn.runtime.aot_build`, in a
+    process of its own with numba compiling the originals); True when the build is in
+    place and passed its check."""
+    import os
+    import subprocess
+
+    from orbslam_hgcn import aot
+
+    env = {**os.environ, aot.ENV_SWITCH: "0"}
+    return subprocess.run([sys.executable, "-m", "orbslam_hgcn.runtime.aot_build"], env=env).returncode == 0
+
+
 def main() -> int:
+    """Build the kernels ahead of time when they are not (numba never loaded by a run);
+    when that cannot be done, compile them into numba's cache (the first run then loads
+    them from there)."""
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger("orbslam_hgcn").setLevel(logging.INFO)
+    from orbslam_hgcn import aot, compiled
+
+    if compiled.BUILT is not None:
+        print(f"compiled kernels: built ahead of time in {compiled.BUILT.folder}, up to date")
+        return 0
+    if not (aot.status or "").startswith("turned off"):
+        print(f"building the compiled kernels ahead of time ({aot.status})", flush=True)
+        if build_ahead():
+            return 0
+        print("runs will load the kernels from numba's cache instead (about 0.5 s more start-up)", flush=True)
     if not cold_modules():
         print("compiled kernels: all in numba's cache")
         return 0

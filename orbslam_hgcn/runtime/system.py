@@ -113,6 +113,21 @@ def limit_library_threads(n: int) -> dict[str, int]:
     return counts
 
 
+def kernel_source() -> dict[str, Any]:
+    """Where this process's compiled kernels came from: ``built_ahead`` (the build of
+    :mod:`orbslam_hgcn.aot`; else numba), ``not_built_why`` (why not), ``numba_imported``,
+    and ``fallbacks``: kernels called with arguments their build does not take, which
+    numba compiled or loaded instead."""
+    from orbslam_hgcn import aot, compiled
+
+    return {
+        "built_ahead": compiled.BUILT is not None,
+        "not_built_why": aot.status,
+        "numba_imported": "numba" in sys.modules,
+        "fallbacks": dict(aot.fallbacks),
+    }
+
+
 def warm_up_kernels() -> float:
     """Compile (first run after an install) or load from numba's cache the compiled kernels
     of tracking and local mapping: :func:`orbslam_hgcn.runtime.kernels.warm_up_tracking`."""
@@ -1008,6 +1023,7 @@ class System:
                 "solver_nice": self.solver_nice if not self.sequential else 0,
             },
             "events": self.events,
+            "kernels": kernel_source(),
             "real_time": self.real_time(),
             "timing_ms": {
                 "extraction_per_frame": summary_ms(self.timings["extraction"]),

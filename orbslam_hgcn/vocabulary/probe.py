@@ -38,13 +38,12 @@ from __future__ import annotations
 
 import threading
 
-import numba
 import numpy as np
 
 from orbslam_hgcn.compiled import jit
 
 # The distance kernel may fuse its products and sums into FMA instructions (and only that).
-_jit_fma = numba.njit(cache=True, nogil=True, fastmath={"contract"})
+_jit_fma = jit(fastmath={"contract"})
 
 PROBE = 28  # lists probed per query
 KMEANS_ITERS = 10  # Lloyd iterations of the list centres (at load time)
