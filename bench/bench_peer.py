@@ -554,6 +554,7 @@ def run_ours(args: argparse.Namespace, kind: str, out: Path, gt: Any, camera_spa
         start_s=(ready_at - t0 + float(startup)) if ready_at is not None and startup is not None else float("nan"),
         frame_ms=float(s["timing_ms"]["frame_total"]["median"]),
         ate=keyframe_ate(gt, out / "KeyFrameTrajectory.txt"),
+        kernels=kernels_of(s),
     )
     row["fps"] = fps(row["frames"], row["loop_s"])
     return row
@@ -674,7 +675,7 @@ def format_row(run: str, row: dict[str, Any]) -> str:
     pairs = str(ate.get("pairs", "-"))
     vals = (run, row["system"], f"{row['frames']:.0f}", f"{row['tracked']:.0f}", f"{row['lost']:.0f}",
             f"{row['maps']:.0f}", f"{row['keyframes']:.0f}", ate_s, pairs, f"{row['fps']:.2f}",
-            f"{row['frame_ms']:.1f}", f"{row['loop_s']:.2f}", f"{row['start_s']:.1f}", f"{row['shutdown_s']:.2f}",
+            f"{row['frame_ms']:.1f}", f"{row['loop_s']:.2f}", f"{row['start_s']:.2f}", f"{row['shutdown_s']:.2f}",
             f"{row['cpu_s']:.1f}")
     return " ".join(f"{v:<{w}s}" if name == "system" else f"{v:>{w}s}" for (name, w), v in zip(COLUMNS, vals))
 
@@ -946,13 +947,15 @@ def main() -> int:
             if more is not None:
                 summary_line += f"; {what}: {more[0]:.2f}x ({', '.join(f'{r:.2f}x' for r in more[1])})"
     print(summary_line)
+    kernels = sorted({r.get("kernels", "unknown") for r in rows["orbslam-hgcn"] if "error" not in r})
+    print(f"our compiled kernels: {', '.join(kernels) or 'no run finished'}")
     if args.record:
-        figs = [("vocabulary", source), ("frames given", str(n))]
+        figs = [("vocabulary", source), ("frames given", str(n)), ("our compiled kernels", ", ".join(kernels))]
         for i, verdict in enumerate(verdicts):
             o, q = rows["orbslam-hgcn"][i], rows["ORB-SLAM3"][i]
             sides = "; ".join(
                 f"{r['system']} failed" if "error" in r else
-                f"{r['system']} tracked {r['tracked']:.0f}, {r['fps']:.2f} frames/s, start {r['start_s']:.1f} s, "
+                f"{r['system']} tracked {r['tracked']:.0f}, {r['fps']:.2f} frames/s, start {r['start_s']:.2f} s, "
                 f"shutdown {r['shutdown_s']:.2f} s" for r in (o, q))
             figs.append((f"run {i + 1}", f"{sides}; {describe_verdict(verdict, n)}"))
         figs.append(("median", summary_line))
@@ -960,6 +963,16 @@ def main() -> int:
                load_start=load_start, notes=f"pyorbslam3 {version}, {peer_features} ORB features, "
                f"ours with {args.ours_args or 'defaults'}")
     return 0
+
+
+def kernels_of(stats: dict[str, Any]) -> str:
+    """Where a run of ours took its compiled kernels from (its stats.json ``kernels``)."""
+    k = stats.get("kernels")
+    if not k:
+        return "unknown"
+    if k.get("built_ahead") and not k.get("numba_imported"):
+        return "built ahead of time"
+    return "numba" + (f" ({k['not_built_why']})" if k.get("not_built_why") else "")
 
 
 def record(name: str, title: str, figs: list[tuple[str, str]], **kwargs: Any) -> None:
