@@ -73,7 +73,6 @@ class PointIndex:
     ``lists`` (L, d) list centres with ``nprobe`` lists probed."""
 
     def __init__(self, points: np.ndarray, lists: np.ndarray, nprobe: int) -> None:
-        configure_faiss()
         self.points = np.ascontiguousarray(points, dtype=np.float32)
         d = self.points.shape[1]
         self.lists = np.ascontiguousarray(lists, dtype=np.float32).reshape(-1, d)
@@ -82,6 +81,8 @@ class PointIndex:
             self.probed = ProbedSearch(self.points)
         else:
             import faiss
+
+            configure_faiss()
             self._quantizer = faiss.IndexFlatL2(d)  # kept alive: the IVF index does not own it
             self._quantizer.add(self.lists)
             self.index = faiss.IndexIVFFlat(self._quantizer, d, len(self.lists))
