@@ -367,6 +367,35 @@ def test_compiled_rbrief_equals_opencv_at_any_orientation(tum_layout):
         compiled.describe(img, np.array([compiled.reach - 1]), np.array([100]), np.zeros(1, np.float32))
 
 
+def test_the_pattern_kept_between_runs_is_checked_before_use(tmp_path, monkeypatch):
+    # The pattern read off OpenCV is kept in the user's cache; a later process uses it only
+    # after the same check against cv2.ORB.compute, so a wrong or damaged file is read
+    # again from OpenCV and replaced.
+    from orbslam_hgcn.features import rbrief as rb
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    probe = rb.opencv_rbrief.__wrapped__
+    fresh = probe(31, 19)
+    kept = rb._pattern_file(31, 19)
+    assert fresh is not None and kept.is_file() and kept.is_relative_to(tmp_path)
+    pattern = np.load(kept)
+    np.testing.assert_array_equal(pattern.reshape(-1, 2), np.stack([fresh.px, fresh.py], axis=1))
+    real_probe = rb.probe_pattern
+
+    def not_probed(*args):
+        raise AssertionError("OpenCV probed although the kept pattern is good")
+
+    monkeypatch.setattr(rb, "probe_pattern", not_probed)
+    assert np.array_equal(probe(31, 19).px, fresh.px)  # from the file
+    monkeypatch.setattr(rb, "probe_pattern", real_probe)
+    np.save(kept, pattern[::-1])  # the pairs in the wrong order: fails the check
+    assert np.array_equal(probe(31, 19).px, fresh.px)
+    np.testing.assert_array_equal(np.load(kept), pattern)  # read again and replaced
+    kept.write_bytes(b"not a pattern")
+    assert np.array_equal(probe(31, 19).px, fresh.px)
+    np.testing.assert_array_equal(np.load(kept), pattern)
+
+
 def test_extractor_falls_back_to_opencv_descriptors(tum_layout, extractor, monkeypatch):
     # Where the pattern cannot be read off OpenCV, cv2.ORB.compute describes, with the same result.
     monkeypatch.setattr("orbslam_hgcn.features.orb.opencv_rbrief", lambda *args: None)

@@ -11,7 +11,9 @@ The 256 test pairs of OpenCV's 31-pixel patch are the learned pattern of Rublee 
 are read off the installed OpenCV by :func:`probe_pattern`, which describes keypoints on
 step images and decodes each bit's two sample points from the steps at which it flips.
 :func:`opencv_rbrief` then checks the compiled descriptor against ``cv2.ORB.compute`` on a
-noise image with random orientations, with each candidate blur (with OpenCV 5.0, ORB's
+noise image with random orientations (a pattern read off before is kept in the user's cache,
+``~/.cache/orbslam_hgcn/rbrief``, per OpenCV version, and goes through the same check, so a
+process skips the 45 ms of reading it again), with each candidate blur (with OpenCV 5.0, ORB's
 smoothing equals a separable float Gaussian and not the fixed-point ``cv2.GaussianBlur``,
 which differs by a grey level here and there), and keeps the blur that matches bit for
 bit; when none does, the extractor stays with ``cv2.ORB.compute``.
@@ -22,8 +24,10 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -226,10 +230,55 @@ def opencv_rbrief(patch_size: int, edge_threshold: int) -> CompiledRBrief | None
     """The compiled rBRIEF that equals ``cv2.ORB.compute`` (``patch_size``,
     ``edge_threshold``) bit for bit on a check image, or None (use OpenCV's)."""
     orb = cv2.ORB_create(nfeatures=1, nlevels=1, edgeThreshold=edge_threshold, patchSize=patch_size)
+    cached = _read_pattern(patch_size, edge_threshold)
+    if cached is not None:
+        found = _checked(orb, cached, patch_size, edge_threshold)
+        if found is not None:
+            return found
     pattern = probe_pattern(orb, patch_size)
     if pattern is None:
         log.info("could not read ORB's test pattern off OpenCV %s; describing with OpenCV", cv2.__version__)
         return None
+    found = _checked(orb, pattern, patch_size, edge_threshold)
+    if found is not None:
+        _write_pattern(patch_size, edge_threshold, pattern)
+        return found
+    log.info("the compiled rBRIEF differs from OpenCV %s's; describing with OpenCV", cv2.__version__)
+    return None
+
+
+def _pattern_file(patch_size: int, edge_threshold: int) -> Path:
+    """Where the test pattern read off this OpenCV is kept between runs (the user's cache)."""
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "orbslam_hgcn" / "rbrief"
+    return cache / f"opencv-{cv2.__version__}-patch{patch_size}-edge{edge_threshold}.npy"
+
+
+def _read_pattern(patch_size: int, edge_threshold: int) -> np.ndarray | None:
+    """The pattern kept by an earlier run (None: none, or unreadable); it is used only after
+    :func:`_checked` finds it describes as OpenCV does."""
+    try:
+        pattern = np.load(_pattern_file(patch_size, edge_threshold), allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    if pattern.ndim != 2 or pattern.shape[1] != 4 or pattern.dtype.kind != "i" or not len(pattern):
+        return None
+    return pattern.astype(np.int64)
+
+
+def _write_pattern(patch_size: int, edge_threshold: int, pattern: np.ndarray) -> None:
+    path = _pattern_file(patch_size, edge_threshold)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
+        np.save(tmp, np.asarray(pattern, np.int64))
+        os.replace(tmp, path)
+    except OSError as exc:  # a read-only home: probe again next time
+        log.debug("could not keep the rBRIEF pattern in %s: %s", path, exc)
+
+
+def _checked(orb: cv2.ORB, pattern: np.ndarray, patch_size: int, edge_threshold: int) -> CompiledRBrief | None:
+    """The compiled rBRIEF of ``pattern`` when it equals ``orb.compute`` bit for bit on a
+    check image with each candidate blur in turn (None: with neither)."""
     points = pattern.reshape(-1, 2).astype(np.float32)
     # A rotated point rounds to at most its distance from the keypoint, rounded.
     reach = int(np.floor(np.linalg.norm(points, axis=1).max() + 0.5))
@@ -251,5 +300,4 @@ def opencv_rbrief(patch_size: int, edge_threshold: int) -> CompiledRBrief | None
         candidate = CompiledRBrief(blur, np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1]), reach)
         if np.array_equal(candidate.describe(image, x, y, angle), want):
             return candidate
-    log.info("the compiled rBRIEF differs from OpenCV %s's; describing with OpenCV", cv2.__version__)
     return None
