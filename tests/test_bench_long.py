@@ -224,7 +224,9 @@ def test_series_of_a_real_run_match_its_stats(synth_replay_100, tmp_path):
     assert np.all(np.diff(s["loop_db_keyframes"]) <= 1)
     tracked = np.isfinite(s["tracking_ms"])
     assert set(s["frame_ref_kf"][tracked]) <= set(s["kf_id"])
-    assert r["peak_tree_mb"] >= r["peak_run_mb"] > 50 and r["samples"]
+    # Both memories sampled; the tree's sum of PSS may be below the run's VmRSS: the library
+    # pages it shares with processes outside the tree (this test's own) count in part.
+    assert r["peak_tree_mb"] > 50 and r["peak_run_mb"] > 50 and r["samples"]
     fig = bench.analyse(r, bench.plan("office", 100 / 7200), "unpaced")
     assert set(fig["growth"]) == {"tracking ms/frame", "local mapping ms/kf", "loop detection ms/kf", "db query ms/kf"}
     assert len(fig["tenths"]) == 10 and fig["tenths"][-1]["keyframes"] > 0 and fig["tenths"][-1]["run_mb"] > 50
