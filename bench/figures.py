@@ -60,8 +60,9 @@ KEY_LINES = [
      "640x480 JPEG render of the fr3 office path, unpaced"),
     ("peer_kitti00", "median", None, "the same, real KITTI 00 frames 0-159 (ORB-SLAM3 unpaced on 2 cores loses its track "
      "in most runs)"),
-    ("startup_kitti00", "median", None,
-     "start-up of `orbslam-hgcn run`, from the command to the first frame handed in (KITTI 00)"),
+    ("startup_fresh_clone", "median", None,
+     "start-up in a fresh clone after `bash tools/setup.sh`, its first runs: from the command to the first frame "
+     "handed in (KITTI 00)"),
     ("long_runs_office", "office/unpaced/none", ("peak memory", "tracking", "local mapping", "keyframes", "tracked"),
      "long runs: a 6-lap 240 s rendered office (7200 frames) unpaced, last quarter against the first"),
     ("long_runs_office", "office/paced/none", ("peak memory", "loops", "laps joined", "tracked", "real-time factor"),
