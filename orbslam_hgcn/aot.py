@@ -15,8 +15,8 @@ Each kernel is a :class:`Kernel`: it checks its arguments against the types it w
 for (dtype, dimensions, C order, alignment, writability; exact scalar types) and calls the
 built function, which releases the GIL as numba's ``nogil`` kernels do. Arguments of any
 other type go to numba, compiled (or loaded from its cache) on that first call, so a kernel
-never runs on data it was not built for. This module imports only the standard library and
-numpy.
+never runs on data it was not built for. This module imports only the standard library,
+numpy and :mod:`orbslam_hgcn.outputs`.
 """
 
 from __future__ import annotations
@@ -34,6 +34,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+
+from orbslam_hgcn.outputs import cache_root
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +59,7 @@ def build_dirs() -> list[Path]:
     ``ORBSLAM_HGCN_AOT_DIR`` names one folder instead."""
     if os.environ.get(ENV_DIR):
         return [Path(os.environ[ENV_DIR])]
-    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "orbslam_hgcn" / "aot"
+    cache = cache_root() / "aot"
     key = hashlib.sha256(str(PACKAGE_ROOT).encode()).hexdigest()[:12]
     dirs = [PACKAGE_ROOT / "_aot", cache / key]
     if not os.access(PACKAGE_ROOT, os.W_OK):
@@ -128,11 +130,16 @@ class Built:
                 for symbol, specs in self.manifest["kernels"].get(qualname, [])]  # fmt: skip
 
 
+def turned_off() -> bool:
+    """Whether ``ORBSLAM_HGCN_AOT`` turns the built kernels off (0, no, off, false)."""
+    return os.environ.get(ENV_SWITCH, "1").strip().lower() in ("0", "no", "off", "false")
+
+
 def load() -> Built | None:
     """The built kernels when they match this machine and these sources, else None (the
     reason in :data:`status`)."""
     global status
-    if os.environ.get(ENV_SWITCH, "1").strip().lower() in ("0", "no", "off", "false"):
+    if turned_off():
         status = f"turned off ({ENV_SWITCH}=0)"
         return None
     reasons = []
@@ -164,6 +171,14 @@ def load() -> Built | None:
     return None
 
 
+def numba_kernel(func: Callable[..., Any], options: dict[str, Any]) -> Any:
+    """numba's compiled ``func`` with the kernels' settings: cached on disk, without the GIL,
+    and ``options`` (numba imported here, at the first need)."""
+    import numba
+
+    return numba.njit(cache=True, nogil=True, **options)(func)
+
+
 # Argument specs, as the builder writes them: "int64", "float64", "bool" for scalars and
 # "array:<dtype>:<ndim>:<layout>:<r|w>" for arrays (layout C, F or A; r: read-only allowed).
 _SCALARS = {
@@ -178,7 +193,6 @@ _LAYOUT = {"C": "_f.c_contiguous and ", "F": "_f.f_contiguous and ", "A": ""}
 def make_check(specs: tuple[str, ...]) -> Callable[..., bool]:
     """A function of ``len(specs)`` arguments that is True when they have the types
     ``specs`` (those numba would type them as, for the built signature)."""
-    specs = tuple(specs)
     names = [f"a{i}" for i in range(len(specs))]
     terms = []
     env: dict[str, Any] = {"_nd": np.ndarray, "_i8": np.int64, "_f8": np.float64, "_b": np.bool_}
@@ -239,9 +253,7 @@ class Kernel:
     def dispatcher(self) -> Any:
         """numba's dispatcher of this kernel (numba imported at the first need)."""
         if self._dispatcher is None:
-            import numba
-
-            self._dispatcher = numba.njit(cache=True, nogil=True, **self.options)(self.py_func)
+            self._dispatcher = numba_kernel(self.py_func, self.options)
         return self._dispatcher
 
     @property

@@ -51,9 +51,7 @@ def jit(func: Callable[..., Any] | None = None, **options: Any) -> Any:
     def wrap(f: Callable[..., Any]) -> Any:
         if BUILT is not None:
             return aot.Kernel(f, options, BUILT.exports(f"{f.__module__}.{f.__qualname__}"))
-        import numba
-
-        return numba.njit(cache=True, nogil=True, **options)(f)
+        return aot.numba_kernel(f, options)
 
     return wrap if func is None else wrap(func)
 

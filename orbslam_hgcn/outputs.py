@@ -3,6 +3,7 @@ says at once, as one OrbslamError, when it cannot (a path under a file, no permi
 
 from __future__ import annotations
 
+import os
 import tempfile
 from pathlib import Path
 
@@ -45,3 +46,10 @@ def _check_writable(folder: Path, target: Path, what: str) -> None:
             pass
     except OSError as exc:
         raise OrbslamError(f"{target}: {what} cannot be written ({folder}: {exc.strerror})") from None
+
+
+def cache_root() -> Path:
+    """The package's cache folder: ``$ORBSLAM_HGCN_CACHE``, else ``~/.cache/orbslam_hgcn``
+    (rendered demo sequences, the kernels built for a read-only install, ORB's test pattern)."""
+    env = os.environ.get("ORBSLAM_HGCN_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "orbslam_hgcn"

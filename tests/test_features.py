@@ -373,7 +373,7 @@ def test_the_pattern_kept_between_runs_is_checked_before_use(tmp_path, monkeypat
     # again from OpenCV and replaced.
     from orbslam_hgcn.features import rbrief as rb
 
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setenv("ORBSLAM_HGCN_CACHE", str(tmp_path))
     probe = rb.opencv_rbrief.__wrapped__
     fresh = probe(31, 19)
     kept = rb._pattern_file(31, 19)

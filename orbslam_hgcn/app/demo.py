@@ -12,25 +12,18 @@ for rerun (``OUT/demo.rrd`` by default).
 from __future__ import annotations
 
 import logging
-import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from orbslam_hgcn.config import ThreadsConfig
 from orbslam_hgcn.errors import ConfigError
 from orbslam_hgcn.app.compare import Comparison, RunOutcome, describe_run, format_markdown, run_comparison
-from orbslam_hgcn.outputs import check_output_folder
+from orbslam_hgcn.outputs import cache_root, check_output_folder
 from orbslam_hgcn.viz.sinks import parse_rerun_arg
 
 log = logging.getLogger(__name__)
 
 DEMO_VOCABS = ("hgcn", "orb")  # the paper's vocabulary first, then the baseline
-
-
-def default_cache() -> Path:
-    """``$ORBSLAM_HGCN_CACHE``, else ``~/.cache/orbslam_hgcn``."""
-    env = os.environ.get("ORBSLAM_HGCN_CACHE")
-    return Path(env) if env else Path.home() / ".cache" / "orbslam_hgcn"
 
 
 def demo_sequence(
@@ -45,7 +38,7 @@ def demo_sequence(
 
     if frames is not None and frames < 1:
         raise ConfigError(f"--frames must be at least 1, found {frames}")
-    root = check_output_folder(Path(cache) if cache is not None else default_cache(), "--cache")
+    root = check_output_folder(Path(cache) if cache is not None else cache_root(), "--cache")
     folder = root / ("loop_default" if frames is None else f"loop_{frames}frames")
     reuse = (folder / "scene.json").is_file() and not force
     log.info("%s the demo sequence in %s", "checking" if reuse else "rendering (once)", folder)

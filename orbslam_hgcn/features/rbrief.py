@@ -12,7 +12,7 @@ are read off the installed OpenCV by :func:`probe_pattern`, which describes keyp
 step images and decodes each bit's two sample points from the steps at which it flips.
 :func:`opencv_rbrief` then checks the compiled descriptor against ``cv2.ORB.compute`` on a
 noise image with random orientations (a pattern read off before is kept in the user's cache,
-``~/.cache/orbslam_hgcn/rbrief``, per OpenCV version, and goes through the same check, so a
+``rbrief/`` of :func:`~orbslam_hgcn.outputs.cache_root`, per OpenCV version, and goes through the same check, so a
 process skips the 45 ms of reading it again), with each candidate blur (with OpenCV 5.0, ORB's
 smoothing equals a separable float Gaussian and not the fixed-point ``cv2.GaussianBlur``,
 which differs by a grey level here and there), and keeps the blur that matches bit for
@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from orbslam_hgcn.compiled import jit
+from orbslam_hgcn.outputs import cache_root
 
 log = logging.getLogger(__name__)
 
@@ -249,8 +250,7 @@ def opencv_rbrief(patch_size: int, edge_threshold: int) -> CompiledRBrief | None
 
 def _pattern_file(patch_size: int, edge_threshold: int) -> Path:
     """Where the test pattern read off this OpenCV is kept between runs (the user's cache)."""
-    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "orbslam_hgcn" / "rbrief"
-    return cache / f"opencv-{cv2.__version__}-patch{patch_size}-edge{edge_threshold}.npy"
+    return cache_root() / "rbrief" / f"opencv-{cv2.__version__}-patch{patch_size}-edge{edge_threshold}.npy"
 
 
 def _read_pattern(patch_size: int, edge_threshold: int) -> np.ndarray | None:

@@ -171,7 +171,7 @@ def main() -> int:
     if compiled.BUILT is not None:
         print(f"compiled kernels: built ahead of time in {compiled.BUILT.folder}, up to date")
         return 0
-    if not (aot.status or "").startswith("turned off"):
+    if not aot.turned_off():
         print(f"building the compiled kernels ahead of time ({aot.status})", flush=True)
         if build_ahead():
             return 0
