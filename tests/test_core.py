@@ -24,6 +24,21 @@ def test_inverse_and_quaternion_round_trip():
     np.testing.assert_allclose(transform_points(inv_T(T), transform_points(T, X)), X, atol=1e-12)
 
 
+def test_quaternions_give_scipys_rotations():
+    # The numpy conversion against scipy's, on unnormalised quaternions of both signs, one
+    # and many at once; a zero or (3,) quaternion is refused.
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=(50, 4)) * rng.uniform(0.1, 10.0, size=(50, 1))
+    np.testing.assert_allclose(quat_to_R(q), Rotation.from_quat(q).as_matrix(), atol=1e-14)
+    np.testing.assert_allclose(quat_to_R(q[3]), Rotation.from_quat(q[3]).as_matrix(), atol=1e-14)
+    np.testing.assert_allclose(quat_to_R([0.0, 0.0, 0.0, 1.0]), np.eye(3))
+    for bad in ([0.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0]):
+        with pytest.raises(ValueError):
+            quat_to_R(bad)
+
+
 def test_tum_round_trip(tmp_path):
     rng = np.random.default_rng(1)
     poses = np.stack([_random_T(rng) for _ in range(7)])

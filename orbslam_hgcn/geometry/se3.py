@@ -49,12 +49,27 @@ def transform_points(T: np.ndarray, X: np.ndarray) -> np.ndarray:
 
 
 def quat_to_R(q_xyzw: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) or (N, 3, 3) from quaternion(s) ``(qx, qy, qz, qw)``."""
-    from scipy.spatial.transform import (
-        Rotation,  # scipy.spatial: 0.2 s of a run's start-up
-    )
-
-    return Rotation.from_quat(np.asarray(q_xyzw, dtype=np.float64)).as_matrix()
+    """Rotation matrix (3, 3) or (N, 3, 3) from quaternion(s) ``(qx, qy, qz, qw)``, each
+    normalised first (a zero quaternion is a ValueError). numpy only: reading a TUM or EuRoC
+    ground truth at start-up no longer imports ``scipy.spatial`` (0.2 s)."""
+    q = np.asarray(q_xyzw, dtype=np.float64)
+    if q.shape[-1:] != (4,) or q.ndim > 2:
+        raise ValueError(f"quaternions must be (4,) or (N, 4), found {q.shape}")
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    if not np.all(np.isfinite(norm)) or np.any(norm == 0.0):
+        raise ValueError("quaternions must be finite and non-zero")
+    x, y, z, w = np.moveaxis(q / norm, -1, 0)
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    R[..., 0, 1] = 2.0 * (x * y - z * w)
+    R[..., 0, 2] = 2.0 * (x * z + y * w)
+    R[..., 1, 0] = 2.0 * (x * y + z * w)
+    R[..., 1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    R[..., 1, 2] = 2.0 * (y * z - x * w)
+    R[..., 2, 0] = 2.0 * (x * z - y * w)
+    R[..., 2, 1] = 2.0 * (y * z + x * w)
+    R[..., 2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    return R
 
 
 def R_to_quat(R: np.ndarray) -> np.ndarray:
