@@ -30,7 +30,10 @@ Printed per scenario, mode and load:
   0.2 s, and the largest VmRSS of the run process alone. Where a process's smaps_rollup
   cannot be read (kernels before 4.14), its VmRSS counts instead and the report says the
   sum is an upper bound. Linux only (elsewhere the bench says so and prints the rest);
-* cost growth, from the run's ``series.npz``: tracking ms per frame (frames tracked),
+* cost growth, from the run's ``series.npz``: tracking ms per frame (frames tracked) and
+  the tracking thread's CPU ms per frame (what the frame's tracking did, without its waits
+  for a core, the GIL or the map's lock: where the wall time grows and this does not, the
+  growth is contention),
   local mapping ms per keyframe, loop detection ms per keyframe and the keyframe-database
   query ms per keyframe (both over the keyframes whose detection queried the database;
   detection is skipped right after the map's start and after a loop), each as median and
@@ -287,6 +290,8 @@ def cost_growth(series: dict[str, np.ndarray]) -> dict[str, dict[str, Any]]:
     known = loop_frames >= 0
     return {
         "tracking ms/frame": quarter_stats(frames, series["tracking_ms"], lo, hi),
+        **({"tracking CPU ms/frame": quarter_stats(frames, series["tracking_cpu_ms"], lo, hi)}
+           if "tracking_cpu_ms" in series else {}),
         "local mapping ms/kf": quarter_stats(series["kf_frame"], series["kf_mapping_ms"], lo, hi),
         "loop detection ms/kf": quarter_stats(loop_frames[known & queried], series["loop_detect_ms"][known & queried],
                                               lo, hi),
@@ -452,8 +457,11 @@ def tail_costs(series: dict[str, np.ndarray]) -> dict[str, float]:
     lo, hi = float(frames.min()), float(frames.max())
     skip = lo + 0.1 * (hi - lo + 1)
     out = {}
-    for name, index, values in (("tracking ms/frame", frames, series["tracking_ms"]),
-                                ("local mapping ms/kf", series["kf_frame"], series["kf_mapping_ms"])):  # fmt: skip
+    costs = [("tracking ms/frame", frames, series["tracking_ms"]),
+             ("local mapping ms/kf", series["kf_frame"], series["kf_mapping_ms"])]
+    if "tracking_cpu_ms" in series:
+        costs.insert(1, ("tracking CPU ms/frame", frames, series["tracking_cpu_ms"]))
+    for name, index, values in costs:
         index, values = np.asarray(index, np.float64), np.asarray(values, np.float64)
         v = values[(index >= skip) & np.isfinite(values)]
         out[name] = float(np.median(v)) if len(v) else math.nan

@@ -210,6 +210,9 @@ def test_series_of_a_real_run_match_its_stats(synth_replay_100, tmp_path):
     assert len(trk) == t["tracking_per_frame"]["count"] > 50
     assert np.median(trk) == pytest.approx(t["tracking_per_frame"]["median"])
     assert np.median(s["frame_ms"]) == pytest.approx(t["frame_total"]["median"])
+    cpu = s["tracking_cpu_ms"]
+    assert np.array_equal(np.isfinite(cpu), np.isfinite(s["tracking_ms"]))
+    assert np.median(cpu[np.isfinite(cpu)]) == pytest.approx(t["tracking_cpu_per_frame"]["median"])
     assert len(s["kf_id"]) == t["local_mapping_per_keyframe"]["count"] >= 5 and len(set(s["kf_id"])) == len(s["kf_id"])
     assert np.median(s["kf_mapping_ms"]) == pytest.approx(t["local_mapping_per_keyframe"]["median"])
     assert np.median(s["kf_local_ba_ms"]) == pytest.approx(t["local_ba_per_keyframe"]["median"])
@@ -228,6 +231,7 @@ def test_series_of_a_real_run_match_its_stats(synth_replay_100, tmp_path):
     # pages it shares with processes outside the tree (this test's own) count in part.
     assert r["peak_tree_mb"] > 50 and r["peak_run_mb"] > 50 and r["samples"]
     fig = bench.analyse(r, bench.plan("office", 100 / 7200), "unpaced")
-    assert set(fig["growth"]) == {"tracking ms/frame", "local mapping ms/kf", "loop detection ms/kf", "db query ms/kf"}
+    assert set(fig["growth"]) == {"tracking ms/frame", "tracking CPU ms/frame", "local mapping ms/kf",
+                                  "loop detection ms/kf", "db query ms/kf"}
     assert len(fig["tenths"]) == 10 and fig["tenths"][-1]["keyframes"] > 0 and fig["tenths"][-1]["run_mb"] > 50
     assert fig["tracked"] == stats["frames"]["tracked"] and fig["peak_tree_mb"] == r["peak_tree_mb"]

@@ -22,7 +22,10 @@ pickles), to see how costs grow over a long run (``bench/bench_long.py``):
   timestamp, s), ``frame_wall`` (``time.time()`` when its pose came out), ``tracking_ms``
   (NaN on frames not tracked and on the initialising one, as ``tracking_per_frame``
   leaves them out), ``frame_ms`` (latency, extraction start to pose, as ``frame_total``),
-  ``frame_ref_kf`` (the reference keyframe its pose is recorded against; -1 none);
+  ``frame_ref_kf`` (the reference keyframe its pose is recorded against; -1 none),
+  ``tracking_cpu_ms`` (the tracking thread's CPU time for the frame, NaN where
+  ``tracking_ms`` is: the wall time less what the thread waited for the CPU, the GIL or a
+  lock);
 * every :data:`COUNT_EVERY`-th frame processed: ``count_frame``, ``count_keyframes`` and
   ``count_points`` (the active map's good keyframes and points after tracking that frame;
   counted only so often, since counting walks the map);
@@ -146,12 +149,12 @@ def summary_ms(values: list[float] | np.ndarray) -> dict[str, float | None]:
 
 
 def series_arrays(
-    frames: list[tuple[int, float, float, float, float]], counts: list[tuple[int, int, int]],
+    frames: list[tuple[int, float, float, float, float, float]], counts: list[tuple[int, int, int]],
     mapped: list[tuple[int, int, float, float, float]], loops: list[tuple[int, float, float, int]],
     records: Iterable[PoseRecord] = (),
 ) -> dict[str, np.ndarray]:  # fmt: skip
     """The arrays of ``series.npz`` (see the module text) from a run's rows: ``frames``
-    (frame, timestamp, tracking ms or NaN, frame ms, wall time), ``counts`` (frame,
+    (frame, timestamp, tracking ms or NaN, frame ms, wall time, tracking CPU ms or NaN), ``counts`` (frame,
     keyframes, points), ``mapped`` (kf id, frame, local mapping ms, local BA ms, wall time),
     ``loops`` (kf id, detection ms, query ms or NaN, database keyframes); ``records``: the
     tracker's, for each frame's reference keyframe."""
@@ -161,13 +164,14 @@ def series_arrays(
         return [a[:, i] for i in range(n)]
 
     ref_of = {r.frame_id: r.ref_kf_id for r in records}
-    f, t, trk, fms, wall = cols(frames, 5)
+    f, t, trk, fms, wall, cpu = cols(frames, 6)
     cf, ck, cp = cols(counts, 3)
     kid, kfr, kms, kba, kwall = cols(mapped, 5)
     lid, ldet, lq, ldb = cols(loops, 4)
     i64 = np.int64
     return {
         "frame": f.astype(i64), "frame_t": t, "frame_wall": wall, "tracking_ms": trk, "frame_ms": fms,
+        "tracking_cpu_ms": cpu,
         "frame_ref_kf": np.array([ref_of.get(int(k), -1) for k in f], dtype=i64),
         "count_frame": cf.astype(i64), "count_keyframes": ck.astype(i64), "count_points": cp.astype(i64),
         "kf_id": kid.astype(i64), "kf_frame": kfr.astype(i64), "kf_mapping_ms": kms, "kf_local_ba_ms": kba,

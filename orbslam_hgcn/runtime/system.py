@@ -452,7 +452,7 @@ class System:
         # The series of series.npz (runtime/results.py): per frame processed (frame, timestamp,
         # tracking ms or NaN, frame ms, time.time()); every COUNT_EVERY-th frame (frame, the
         # active map's keyframes, points); per keyframe mapped (filled by the stage runner).
-        self.frame_series: list[tuple[int, float, float, float, float]] = []
+        self.frame_series: list[tuple[int, float, float, float, float, float]] = []
         self.count_series: list[tuple[int, int, int]] = []
         self.keyframe_series: list[tuple[int, int, float, float, float]] = []
         self.events: list[dict[str, Any]] = []
@@ -640,7 +640,8 @@ class System:
         self.frame_started.append(t0)
         tracked = result.state == TrackingState.OK and not result.initialized
         self.frame_series.append((frame_id, timestamp, result.time_ms if tracked else math.nan,
-                                  self.timings["frame"][-1], time.time()))  # fmt: skip
+                                  self.timings["frame"][-1], time.time(),
+                                  result.cpu_ms if tracked else math.nan))  # fmt: skip
         optimising = optimising or stages.optimising or stages.activity.started != started
         self.frame_optimising.append(bool(optimising))
         if hold:
