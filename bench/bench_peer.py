@@ -51,6 +51,14 @@ Timing, the same for both systems, all on the machine's monotonic clock:
 - **shut s** (not in frames/s): from the last pose out to the system stopped. Ours, its
   stages drained at the end of ``System.run`` (``frames_wall_s`` minus the span above);
   ORB-SLAM3, ``Shutdown()`` returned. Writing trajectories afterwards counts in neither.
+- **CPU ms/frame**: the CPU time (user + system, all threads) of the system's process tree
+  from the first image handed in to the system stopped (start s to start s + span s + shut
+  s), over the frames given. The bench samples each tree's CPU every 20 ms from /proc
+  (Linux; ``TreeCpu``) and interpolates at those two moments. It counts what each system
+  spends on the frames whatever the pace, so it compares them even where neither is pushed
+  to its limit (``--speed 1``). Ours counts the decoding of its images; ORB-SLAM3's are
+  decoded by the bench, outside its tree (a KITTI PNG takes about 5 ms with ``cv2.imread``).
+  ``CPU s`` is the whole tree's CPU time, start-up and shutdown included.
 
 ORB-SLAM3 groups features for BoW matching (tracking against the reference keyframe,
 triangulation in local mapping, relocalisation) at the vocabulary's depth minus 4: level 2
@@ -70,7 +78,8 @@ verdict (ratio, or void), the medians over the runs and the median ratio over th
 runs. Each valid run also gives two ratios with start-up counted: ours from its process's
 start to its last pose (start s + span s) against ORB-SLAM3's span alone (the stricter one:
 its start-up apart), and against ORB-SLAM3's start s + span s (both counted); frames are the
-same on both sides, so each ratio is a ratio of times. ``--record NAME`` writes these figures through ``bench/figures.py``.
+same on both sides, so each ratio is a ratio of times; and the CPU per frame, ORB-SLAM3's over
+ours' (above 1: ours spent less). ``--record NAME`` writes these figures through ``bench/figures.py``.
 
 ``--gate`` checks a vocabulary: it runs ORB-SLAM3 alone (``--runs`` times) with
 ``--peer-vocab`` (default: the shared file above) and prints the frames tracked of those
@@ -90,6 +99,7 @@ links against; when they are missing the bench says what to install and exits wi
 from __future__ import annotations
 
 import argparse
+import bisect
 import json
 import os
 import re
@@ -106,6 +116,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench_long import process_tree, proc_supported  # noqa: E402 - a sibling script
 from bench_real import start_load, stop_load  # noqa: E402 - a sibling script
 
 PEER_REQUIREMENT = "pyorbslam3==0.1.1"
@@ -483,6 +494,82 @@ def children_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
+CPU_SAMPLE_S = 0.02  # TreeCpu's sampling interval
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def proc_cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of process ``pid`` (all its threads) from /proc/PID/stat;
+    None when it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            stat = fh.read()
+    except OSError:
+        return None
+    fields = stat[stat.rfind(")") + 2:].split()  # fields[0] is the state, field 3 of the file
+    try:
+        return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+    except (IndexError, ValueError):
+        return None
+
+
+class TreeCpu:
+    """The CPU seconds a process tree has used, sampled every :data:`CPU_SAMPLE_S` on the
+    monotonic clock from /proc (Linux): each process of the tree counts with the last figure
+    read for it, so a child that ends keeps what it used up to its last sample. :meth:`used`
+    interpolates between the samples. ``supported`` is False elsewhere (no figures)."""
+
+    def __init__(self, root: int) -> None:
+        self.root = root
+        self.samples: list[tuple[float, float]] = []
+        self._last: dict[int, float] = {}
+        self._stop = threading.Event()
+        self.supported = proc_supported()
+        self._thread = threading.Thread(target=self._run, name="bench-peer-cpu", daemon=True)
+        if self.supported:
+            self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            for pid in process_tree(self.root):
+                c = proc_cpu_s(pid)
+                if c is not None:
+                    self._last[pid] = max(c, self._last.get(pid, 0.0))
+            self.samples.append((time.monotonic(), sum(self._last.values())))
+            if self._stop.wait(CPU_SAMPLE_S):
+                return
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+
+    def used(self, t0: float, t1: float) -> float:
+        """CPU seconds used between monotonic times ``t0`` and ``t1`` (NaN when the samples
+        do not cover both)."""
+        if len(self.samples) < 2 or not (t0 == t0 and t1 == t1):
+            return float("nan")
+        times = [t for t, _ in self.samples]
+        if t0 < times[0] or t1 > times[-1]:
+            return float("nan")
+
+        def at(t: float) -> float:
+            i = min(max(1, bisect.bisect_left(times, t)), len(times) - 1)
+            (ta, ca), (tb, cb) = self.samples[i - 1], self.samples[i]
+            return ca if tb <= ta else ca + (cb - ca) * (t - ta) / (tb - ta)
+
+        return at(t1) - at(t0)
+
+
+def span_cpu(row: dict[str, Any], cpu: TreeCpu, t0: float) -> None:
+    """``row["cpu_span_s"]``: the CPU seconds the system's process tree used from the first
+    image handed in to the system stopped (start s to start s + span s + shut s after the
+    bench started it at monotonic ``t0``), and ``cpu_ms_per_frame`` over the frames given."""
+    start = t0 + row["start_s"]
+    row["cpu_span_s"] = cpu.used(start, start + row["loop_s"] + max(0.0, row["shutdown_s"]))
+    row["cpu_ms_per_frame"] = 1000.0 * row["cpu_span_s"] / row["frames"] if row["frames"] else float("nan")
+
+
 def keyframe_ate(gt: Any, path: Path) -> dict[str, Any]:
     from orbslam_hgcn.errors import OrbslamError
     from orbslam_hgcn.app.run import trajectory_ate
@@ -529,12 +616,16 @@ def run_ours(args: argparse.Namespace, kind: str, out: Path, gt: Any, camera_spa
         fh.flush()
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True,
                                 errors="replace", bufsize=1)
+        cpu = TreeCpu(proc.pid)
         assert proc.stdout is not None
-        for line in proc.stdout:
-            if ready_at is None and RUN_READY.search(line):
-                ready_at = time.monotonic()
-            fh.write(line)
-        rc = proc.wait()
+        try:
+            for line in proc.stdout:
+                if ready_at is None and RUN_READY.search(line):
+                    ready_at = time.monotonic()
+                fh.write(line)
+            rc = proc.wait()
+        finally:
+            cpu.stop()
     row: dict[str, Any] = {"system": "orbslam-hgcn", "cpu_s": children_cpu() - c0, "call_s": time.monotonic() - t0}
     stats_path = out / "stats.json"
     if rc != 0 or not stats_path.is_file():
@@ -557,6 +648,7 @@ def run_ours(args: argparse.Namespace, kind: str, out: Path, gt: Any, camera_spa
         kernels=kernels_of(s),
     )
     row["fps"] = fps(row["frames"], row["loop_s"])
+    span_cpu(row, cpu, t0)
     return row
 
 
@@ -594,6 +686,7 @@ def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, setti
     c0, t0 = children_cpu(), time.monotonic()
     with log.open("w") as fh:
         proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=fh, stderr=subprocess.STDOUT)
+        cpu = TreeCpu(proc.pid)
         assert proc.stdin is not None
         killed = threading.Event()
 
@@ -629,6 +722,7 @@ def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, setti
                     pass
             proc.wait()
             watchdog.cancel()
+            cpu.stop()
     note = f"killed after {limit:.0f} s" if killed.is_set() else ""
     row: dict[str, Any] = {"system": "ORB-SLAM3", "cpu_s": children_cpu() - c0, "call_s": time.monotonic() - t0}
     rc = proc.returncode
@@ -657,13 +751,14 @@ def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, setti
         ate=keyframe_ate(gt, kf_path),
     )
     row["fps"] = fps(row["frames"], row["loop_s"])
+    span_cpu(row, cpu, t0)
     return row
 
 
 COLUMNS = (
     ("run", 4), ("system", 13), ("frames", 6), ("tracked", 7), ("lost", 5), ("maps", 4), ("KFs", 4),
     ("KF ATE cm", 10), ("pairs", 5), ("frames/s", 8), ("ms/frame", 8), ("span s", 7), ("start s", 7),
-    ("shut s", 6), ("CPU s", 6),
+    ("shut s", 6), ("CPU s", 6), ("CPU ms/f", 8),
 )
 
 
@@ -676,7 +771,7 @@ def format_row(run: str, row: dict[str, Any]) -> str:
     vals = (run, row["system"], f"{row['frames']:.0f}", f"{row['tracked']:.0f}", f"{row['lost']:.0f}",
             f"{row['maps']:.0f}", f"{row['keyframes']:.0f}", ate_s, pairs, f"{row['fps']:.2f}",
             f"{row['frame_ms']:.1f}", f"{row['loop_s']:.2f}", f"{row['start_s']:.2f}", f"{row['shutdown_s']:.2f}",
-            f"{row['cpu_s']:.1f}")
+            f"{row['cpu_s']:.1f}", f"{row.get('cpu_ms_per_frame', float('nan')):.1f}")
     return " ".join(f"{v:<{w}s}" if name == "system" else f"{v:>{w}s}" for (name, w), v in zip(COLUMNS, vals))
 
 
@@ -687,8 +782,9 @@ def median_row(rows: list[dict[str, Any]], system: str) -> dict[str, Any] | None
         return None
     med: dict[str, Any] = {"system": system}
     for key in ("frames", "tracked", "lost", "maps", "keyframes", "fps", "frame_ms", "loop_s", "start_s",
-                "shutdown_s", "cpu_s"):
-        med[key] = statistics.median(r[key] for r in ok)
+                "shutdown_s", "cpu_s", "cpu_ms_per_frame"):
+        vals = [r[key] for r in ok if r.get(key, float("nan")) == r.get(key, float("nan"))]
+        med[key] = statistics.median(vals) if vals else float("nan")
     ates = [r["ate"] for r in ok if "rmse_m" in r["ate"]]
     med["ate"] = ({"rmse_m": statistics.median(a["rmse_m"] for a in ates), "pairs": f"{len(ates)}/{len(rows)}"}
                   if ates else {"error": "none"})
@@ -720,6 +816,10 @@ def compare_run(ours: dict[str, Any], peer: dict[str, Any], given: int,
     if failed:
         return {"valid": False, "failed": failed}
     verdict = {"valid": True, "ratio": ours["fps"] / peer["fps"]}
+    # CPU per frame: ORB-SLAM3's over ours (above 1: ours used less), where both were sampled.
+    o_cpu, p_cpu = ours.get("cpu_ms_per_frame", float("nan")), peer.get("cpu_ms_per_frame", float("nan"))
+    if o_cpu > 0 and p_cpu > 0:
+        verdict["cpu_ratio"] = p_cpu / o_cpu
     # Start-up counted: ours from its process's start (start s + span s) against ORB-SLAM3's
     # span alone (its start-up apart: the stricter ratio), and against its start s + span s.
     if all(k in r and r[k] == r[k] for r in (ours, peer) for k in ("start_s", "loop_s")):
@@ -736,13 +836,16 @@ def describe_verdict(verdict: dict[str, Any], given: int) -> str:
         if "ratio_with_start" in verdict:
             text += (f"; with our start-up counted {verdict['ratio_with_start']:.2f}x (ORB-SLAM3's apart), "
                      f"{verdict['ratio_both_start']:.2f}x with both counted")
+        if "cpu_ratio" in verdict:
+            text += f"; CPU per frame {verdict['cpu_ratio']:.2f}x (ORB-SLAM3's / ours')"
         return text
     why = "; ".join(f"{system} tracked {tracked} of {given} frames ({reason})" for system, tracked, reason in verdict["failed"])
     return f"comparison void: {why}; no ratio"
 
 
 def median_ratio(verdicts: list[dict[str, Any]], key: str = "ratio") -> tuple[float, list[float]] | None:
-    """The median ratio (``key``: "ratio", "ratio_with_start" or "ratio_both_start") over
+    """The median ratio (``key``: "ratio", "ratio_with_start", "ratio_both_start" or
+    "cpu_ratio") over
     the valid runs and those runs' ratios (None when no run is valid)."""
     ratios = [v[key] for v in verdicts if v["valid"] and key in v]
     return (statistics.median(ratios), ratios) if ratios else None
@@ -880,7 +983,8 @@ def main() -> int:
           "stages drained; ORB-SLAM3: Shutdown() returned). ms/frame: median from an image to its pose: ours "
           "from the start of the frame's extraction (unpaced, up to threads.prefetch_frames frames ahead of the "
           "tracker: the wait in that queue counts), ORB-SLAM3 its TrackMonocular call. CPU s: the whole "
-          "process tree, start-up included.")
+          "process tree, start-up included. CPU ms/f: the process tree's CPU from the first image handed in to "
+          "the system stopped, per frame (ORB-SLAM3's images are decoded outside its tree, ours inside).")
     if args.gate:
         print(f"gate: ORB-SLAM3 only; the vocabulary passes when the median run tracks at least {GATE_SHARE:.0%} "
               f"of the {n} frames ({GATE_SHARE * n:.1f})")
@@ -942,7 +1046,8 @@ def main() -> int:
         summary_line = (f"median ratio {med_ratio:.2f}x over {len(ratios)} valid run(s) of {args.runs} "
                         f"(run by run {', '.join(f'{r:.2f}x' for r in ratios)})")
         for key, what in (("ratio_with_start", "our start-up counted, ORB-SLAM3's apart"),
-                          ("ratio_both_start", "both start-ups counted")):
+                          ("ratio_both_start", "both start-ups counted"),
+                          ("cpu_ratio", "CPU per frame, ORB-SLAM3's / ours'")):
             more = median_ratio(verdicts, key)
             if more is not None:
                 summary_line += f"; {what}: {more[0]:.2f}x ({', '.join(f'{r:.2f}x' for r in more[1])})"
@@ -956,7 +1061,8 @@ def main() -> int:
             sides = "; ".join(
                 f"{r['system']} failed" if "error" in r else
                 f"{r['system']} tracked {r['tracked']:.0f}, {r['fps']:.2f} frames/s, start {r['start_s']:.2f} s, "
-                f"shutdown {r['shutdown_s']:.2f} s" for r in (o, q))
+                f"shutdown {r['shutdown_s']:.2f} s, CPU {r.get('cpu_ms_per_frame', float('nan')):.1f} ms/frame"
+                for r in (o, q))
             figs.append((f"run {i + 1}", f"{sides}; {describe_verdict(verdict, n)}"))
         figs.append(("median", summary_line))
         record(args.record, f"ORB-SLAM3 beside `orbslam-hgcn run` on {sequence.name} ({n} frames, {pace})", figs,

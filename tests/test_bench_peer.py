@@ -66,6 +66,55 @@ def test_compare_run_counts_start_up_in_two_more_ratios(bp):
     assert "ratio_with_start" not in bp.compare_run(row("orbslam-hgcn", 160, 40.0), row("ORB-SLAM3", 159, 32.0), 160)
 
 
+def test_compare_run_gives_the_cpu_per_frame_ratio_where_both_were_sampled(bp):
+    ours = {**row("orbslam-hgcn", 160, 40.0), "cpu_ms_per_frame": 40.0}
+    peer = {**row("ORB-SLAM3", 159, 32.0), "cpu_ms_per_frame": 60.0}
+    v = bp.compare_run(ours, peer, 160)
+    assert v["cpu_ratio"] == pytest.approx(1.5) and "CPU per frame 1.50x" in bp.describe_verdict(v, 160)
+    assert "cpu_ratio" not in bp.compare_run(ours, {**peer, "cpu_ms_per_frame": math.nan}, 160)
+    assert "cpu_ratio" not in bp.compare_run(ours, {**peer, "tracked": 100}, 160)
+
+
+BURN = """
+import subprocess, sys, time
+def burn(s):
+    end = time.process_time() + s
+    while time.process_time() < end:
+        pass
+if sys.argv[1] == "parent":
+    time.sleep(0.3)
+    kid = subprocess.Popen([sys.executable, "-c", sys.argv[2], "child", sys.argv[2]])
+    burn(0.4)
+    kid.wait()
+    time.sleep(0.5)
+else:
+    burn(0.5)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc (Linux)")
+def test_tree_cpu_counts_a_process_tree_and_a_child_that_ended(bp):
+    """A process that burns 0.4 s of CPU while its child burns 0.5 s and ends, then sleeps:
+    the sampled tree used about 0.9 s in all and nothing in its last 0.3 s, as the kernel's
+    own accounting of the reaped processes says."""
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = __import__("time").monotonic()
+    proc = subprocess.Popen([sys.executable, "-c", BURN, "parent", BURN])
+    cpu = bp.TreeCpu(proc.pid)
+    proc.wait()
+    cpu.stop()
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    kernel = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    t_end = cpu.samples[-1][0] - 2 * bp.CPU_SAMPLE_S  # before the process exited
+    whole = cpu.used(t0 if t0 >= cpu.samples[0][0] else cpu.samples[0][0], t_end)
+    assert 0.85 <= kernel <= 1.3
+    assert whole == pytest.approx(kernel, abs=0.12)
+    assert cpu.used(t_end - 0.3, t_end) < 0.05
+    assert math.isnan(cpu.used(cpu.samples[0][0] - 1.0, t_end))
+
+
 def test_compare_run_is_void_when_a_system_failed(bp):
     v = bp.compare_run(row("orbslam-hgcn", 160, 30.0), {"system": "ORB-SLAM3", "error": "signal 11"}, 160)
     assert not v["valid"] and v["failed"] == [("ORB-SLAM3", 0, "the run failed")]
