@@ -60,6 +60,8 @@ KEY_LINES = [
      "640x480 JPEG render of the fr3 office path, unpaced"),
     ("peer_kitti00", "median", None, "the same, real KITTI 00 frames 0-159 (ORB-SLAM3 unpaced on 2 cores loses its track "
      "in most runs)"),
+    ("peer_kitti00_paced", "median", None, "the same at the camera's rate, where both track every frame: the ratio of "
+     "frames/s is the pace's; CPU per frame is the comparison"),
     ("startup_fresh_clone", "median", None,
      "start-up in a fresh clone after `bash tools/setup.sh`, its first runs: from the command to the first frame "
      "handed in (KITTI 00)"),
