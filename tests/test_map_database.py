@@ -91,12 +91,27 @@ def test_per_word_filter_is_not_won_by_the_largest_keyframe():
     assert [(c.kf_id, c.common_words) for c in loop] == [(8, 8)]
 
 
-def test_the_growing_store_scores_as_a_database_built_afresh():
+# The inverted index (postings) of the older entries: never made (every query walks all the
+# entries), made of everything at each query, and made now and then, part of the entries
+# after it (the split a growing database has).
+POSTINGS = pytest.mark.parametrize("postings", [(0.125, 10**12), (0.0, -1), (0.5, 50)], ids=["none", "all", "part"])
+
+
+def _set_postings(monkeypatch, postings) -> None:
+    from orbslam_hgcn.map import database
+
+    monkeypatch.setattr(database, "POSTINGS_TAIL", postings[0])
+    monkeypatch.setattr(database, "POSTINGS_MIN", postings[1])
+
+
+@POSTINGS
+def test_the_growing_store_scores_as_a_database_built_afresh(monkeypatch, postings):
     """Keyframes added, replaced and erased in any order: every query scores as a database
     holding only the keyframes left, added in the same order, and the entries stay in that
-    order (its sums run in the same order)."""
+    order (its sums run in the same order), whichever entries the postings hold."""
     import numpy as np
 
+    _set_postings(monkeypatch, postings)
     rng = np.random.default_rng(0)
 
     def random_bow() -> BowVector:
@@ -134,12 +149,14 @@ def test_the_growing_store_scores_as_a_database_built_afresh():
     assert queries > 50 and len(kept) > 100
 
 
-def test_shared_words_and_scores_match_a_direct_count():
-    """The compiled pass and the grouped fallback (negative ids) both give, per keyframe,
-    the words shared with the query and the sum of min(weights) in increasing word order,
-    bit for bit, with excluded keyframes left out."""
+@POSTINGS
+def test_shared_words_and_scores_match_a_direct_count(monkeypatch, postings):
+    """The compiled passes (postings and entries) and the grouped fallback (negative ids)
+    give, per keyframe, the words shared with the query and the sum of min(weights) in
+    increasing word order, bit for bit, with excluded keyframes left out."""
     import numpy as np
 
+    _set_postings(monkeypatch, postings)
     rng = np.random.default_rng(3)
 
     def random_bow() -> BowVector:

@@ -39,6 +39,12 @@ from orbslam_hgcn.vocabulary.bow import BowVector
 
 log = logging.getLogger(__name__)
 
+# The postings are made again when the entries added since outgrow this share of them (plus
+# POSTINGS_MIN): each entry is then bucketed a bounded number of times on average, and a
+# query walks at most that share of the entries one by one.
+POSTINGS_TAIL = 0.125
+POSTINGS_MIN = 8192
+
 CovisibleFn = Callable[[int], Sequence[int]]
 
 
@@ -61,15 +67,19 @@ class KeyframeDatabase:
     n_covisible: best covisible keyframes forming a candidate's group (10).
 
     ORB-SLAM keeps an inverted index (word -> keyframes) and walks the postings of the
-    query's words. Here the keyframes' sparse vectors are kept side by side in flat arrays
-    and a query looks its words up in a dense table over all entries at once: with a few
-    thousand words, a query shares most of its words with every keyframe, so the postings
-    touch a large share of the entries anyway, and one compiled pass over all of them
-    (:func:`_shared_pass`: a table lookup and two sums per entry, about 3 ms for 1000
-    keyframes of 1000 words) is quicker than walking them. :meth:`postings` answers the
-    inverted index's question for callers that want it. The arrays grow in place as
-    keyframes are added (a replaced or erased keyframe's entries are marked dead and
-    dropped at the next query), so adding a keyframe does not copy the others' entries.
+    query's words; so does this one, in two parts. The keyframes' sparse vectors are kept
+    side by side in flat arrays, in the order they were added; the postings of the older
+    entries are made from them in one compiled counting pass (:func:`_bucket_by_word`) and
+    made again when the entries added since outgrow :data:`POSTINGS_TAIL` of them. A query
+    walks the postings of its words (:func:`_postings_pass`) and then the newer entries one
+    by one (:func:`_shared_pass`, a table lookup per entry). Both sum each keyframe's
+    shared words in increasing word order, so the scores are the same as one pass over all
+    the entries. On a 450 s rendered street (1057 keyframes, about a million entries) the
+    last quarter's query took 2.4 ms instead of 9.0 ms with the one pass over all entries.
+    :meth:`postings` answers the inverted index's question for one word. The arrays grow in
+    place as keyframes are added (a replaced or erased keyframe's entries are marked dead
+    and dropped at the next query, and the postings then made again), so adding a keyframe
+    does not copy the others' entries.
     """
 
     def __init__(self, min_common_ratio: float = 0.8, retain_ratio: float = 0.75, n_covisible: int = 10) -> None:
@@ -92,6 +102,14 @@ class KeyframeDatabase:
         self._min_id = 0
         self._max_id = -1
         self._max_word = -1
+        # The inverted index (postings) of the first _base_n entries, word after word, each
+        # word's entries in the order they were added: _base_ptr[w]:_base_ptr[w + 1] in
+        # _base_ids / _base_weights. Made again (in one counting pass) when the entries added
+        # since outgrow POSTINGS_TAIL of it, and after a compaction.
+        self._base_n = 0
+        self._base_ptr = np.zeros(1, np.int64)
+        self._base_ids = np.zeros(0, np.int64)
+        self._base_weights = np.zeros(0, np.float64)
         # Loop queries made so far and the wall time of the last one (ms), for the timings.
         self.loop_queries = 0
         self.last_loop_query_ms = 0.0
@@ -132,6 +150,7 @@ class KeyframeDatabase:
         self._rows.clear()
         self._n = self._n_dead = 0
         self._min_id, self._max_id, self._max_word = 0, -1, -1
+        self._base_n = 0
 
     def _kill(self, kf_id: int) -> None:
         rows = self._rows.pop(kf_id, None)
@@ -168,10 +187,24 @@ class KeyframeDatabase:
                 arr[:n] = arr[: self._n][keep]
             self._dead[:n] = False
             self._n, self._n_dead = n, 0
+            self._base_n = 0  # the entries moved: the postings are made again
             # The live rows are the keyframes' vectors in _bows's order, one after the other.
             ends = np.cumsum([len(b.words) for b in self._bows.values()], dtype=np.int64)
             self._rows = {kf: (int(b - len(bow.words)), int(b)) for (kf, bow), b in zip(self._bows.items(), ends)}
         return self._ids[: self._n], self._words[: self._n], self._weights[: self._n]
+
+    def _postings(self, words: np.ndarray, ids: np.ndarray, weights: np.ndarray) -> int:
+        """Bring the postings up to date with the live entries (``_entries()``'s arrays) when
+        the entries after them outgrow :data:`POSTINGS_TAIL` of them; returns how many
+        entries (a prefix) they hold."""
+        n = len(ids)
+        if n - self._base_n > POSTINGS_TAIL * self._base_n + POSTINGS_MIN:
+            self._base_ptr = np.zeros(self._max_word + 2, np.int64)
+            self._base_ids = np.empty(n, np.int64)
+            self._base_weights = np.empty(n, np.float64)
+            _bucket_by_word(words, ids, weights, self._base_ptr, self._base_ids, self._base_weights)
+            self._base_n = n
+        return self._base_n
 
     def _sizes(self, ids: np.ndarray) -> np.ndarray:
         """(M,) float64 number of words of each keyframe of ``ids``."""
@@ -201,7 +234,14 @@ class KeyframeDatabase:
             excluded[np.array(out, np.int64)] = True
             counts = np.zeros(self._max_id + 1, np.int64)
             sums = np.zeros(self._max_id + 1, np.float64)
-            _shared_pass(ids, words, weights, held, query_weight, excluded, counts, sums)
+            base = self._postings(words, ids, weights)
+            q_words = np.ascontiguousarray(bow.words, dtype=np.int64)
+            q_weights = np.ascontiguousarray(bow.weights, dtype=np.float64)
+            # A keyframe's entries are all in the postings or all after them, and each is
+            # summed in increasing word order either way, so the sums are the same.
+            _postings_pass(q_words, q_weights, self._base_ptr, self._base_ids, self._base_weights, excluded,
+                           counts, sums)
+            _shared_pass(ids[base:], words[base:], weights[base:], held, query_weight, excluded, counts, sums)
             uniq = np.flatnonzero(counts)
             return uniq, counts[uniq], sums[uniq]
         hit = held[words]
@@ -317,8 +357,46 @@ def _shared_pass(ids, words, weights, held, query_weight, excluded, counts, sums
                 sums[i] += v if v < q else q
 
 
+@jit
+def _bucket_by_word(words, ids, weights, ptr, out_ids, out_weights):  # pragma: no cover - compiled
+    """The postings of the entries: ptr (W + 1,) the offsets of each word's run in out_ids
+    and out_weights, each run in the entries' order (a stable counting sort by word)."""
+    for w in range(len(ptr)):
+        ptr[w] = 0
+    for k in range(len(words)):
+        ptr[words[k] + 1] += 1
+    for w in range(len(ptr) - 1):
+        ptr[w + 1] += ptr[w]
+    fill = ptr[:-1].copy()
+    for k in range(len(words)):
+        w = words[k]
+        j = fill[w]
+        out_ids[j] = ids[k]
+        out_weights[j] = weights[k]
+        fill[w] = j + 1
+
+
+@jit
+def _postings_pass(q_words, q_weights, ptr, ids, weights, excluded, counts, sums):  # pragma: no cover - compiled
+    """For each query word in turn (increasing), each of its postings whose keyframe id is
+    not excluded: counts[id] += 1 and sums[id] += min(weight, the query's weight)."""
+    for a in range(len(q_words)):
+        w = q_words[a]
+        if w + 1 >= len(ptr):
+            continue  # a word no entry of the postings holds
+        q = q_weights[a]
+        for k in range(ptr[w], ptr[w + 1]):
+            i = ids[k]
+            if not excluded[i]:
+                counts[i] += 1
+                v = weights[k]
+                sums[i] += v if v < q else q
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) the query's kernel."""
     db = KeyframeDatabase()
     db.add(0, BowVector(np.array([1, 2], np.int64), np.array([0.5, 0.5])))
     db.shared(BowVector(np.array([2], np.int64), np.array([1.0])), exclude={5})
+    ptr, ids, weights = np.zeros(3, np.int64), np.zeros(2, np.int64), np.zeros(2, np.float64)
+    _bucket_by_word(np.array([1, 0], np.int64), np.array([0, 0], np.int64), np.ones(2), ptr, ids, weights)
