@@ -66,11 +66,15 @@ triangulation in local mapping, relocalisation) at the vocabulary's depth minus 
 orbslam_hgcn's 5-level ORB trees, where each search compares many more descriptor pairs.
 ``--peer-bow-level 2`` hands it a copy of the vocabulary whose header makes that level 2.
 
-Both keyframe trajectories are scored the same way: ATE after Sim(3) alignment against the
-dataset's ground truth, through :func:`orbslam_hgcn.app.run.trajectory_ate`.
+Both systems' trajectories are scored the same way: ATE after Sim(3) alignment against the
+dataset's ground truth, through :func:`orbslam_hgcn.app.run.trajectory_ate`, of the
+keyframes (``KeyFrameTrajectory.txt``) and of every frame with a pose (the camera
+trajectory: ours ``CameraTrajectory.txt``; ORB-SLAM3's ``SaveTrajectoryEuRoC``, each frame
+against its optimised reference keyframe, rewritten in TUM's layout, since its
+``SaveTrajectoryTUM`` refuses a monocular camera).
 
 Printed per run and system: frames given, frames tracked, frames lost, maps started,
-keyframes, keyframe ATE, frames/s, the median time from an image to its pose (ours from the
+keyframes, keyframe and camera ATE, frames/s, the median time from an image to its pose (ours from the
 start of its extraction, which an unpaced run starts up to ``threads.prefetch_frames`` frames
 ahead of the tracker; ORB-SLAM3's ``TrackMonocular`` call), the span frames/s counts,
 start-up, shutdown and CPU time (the process tree, start-up included); then each run's
@@ -205,6 +209,21 @@ def ldd_not_found(package_dirs: list[str]) -> list[str]:
     return out
 
 
+def euroc_to_tum(src: Path, dst: Path) -> int:
+    """Rewrite ORB-SLAM3's ``SaveTrajectoryEuRoC`` file (``t_ns tx ty tz qx qy qz qw`` a
+    line) in TUM's layout (``t_s tx ty tz qx qy qz qw``); returns the poses written (0, and
+    no file, when there is none)."""
+    lines = []
+    if src.is_file():
+        for ln in src.read_text().splitlines():
+            f = ln.split()
+            if len(f) == 8 and not ln.lstrip().startswith("#"):
+                lines.append(f"{float(f[0]) * 1e-9:.9f} " + " ".join(f[1:]))
+    if lines:
+        dst.write_text("\n".join(lines) + "\n")
+    return len(lines)
+
+
 def read_exact(stream: Any, n: int) -> bytes | None:
     data = stream.read(n)
     return data if len(data) == n else None
@@ -262,6 +281,11 @@ def peer_child(vocab: str, settings: str, out: str, speed: float) -> int:
     slam.shutdown()
     shutdown_s = time.perf_counter() - ts0
     slam.save_keyframe_trajectory_tum(str(out_dir / "KeyFrameTrajectory.txt"))
+    # Every tracked frame's pose against its optimised reference keyframe (ORB-SLAM3 writes
+    # this file for a monocular camera only in EuRoC's layout: nanoseconds), as TUM.
+    euroc = out_dir / "CameraTrajectory_euroc.txt"
+    slam.save_trajectory_euroc(str(euroc))
+    euroc_to_tum(euroc, out_dir / "CameraTrajectory.txt")
     summary = {
         "frames": n, "load_s": load_s, "shutdown_s": shutdown_s, "first_in_monotonic": first_mono,
         "loop_s": (last - first) if n else 0.0,  # first image handed in to the last pose out
@@ -571,6 +595,8 @@ def span_cpu(row: dict[str, Any], cpu: TreeCpu, t0: float) -> None:
 
 
 def keyframe_ate(gt: Any, path: Path) -> dict[str, Any]:
+    """ATE after Sim(3) alignment of the trajectory file ``path`` (keyframes or every frame),
+    or {"error": why}."""
     from orbslam_hgcn.errors import OrbslamError
     from orbslam_hgcn.app.run import trajectory_ate
     from orbslam_hgcn.trajectory import read_tum
@@ -645,6 +671,7 @@ def run_ours(args: argparse.Namespace, kind: str, out: Path, gt: Any, camera_spa
         start_s=(ready_at - t0 + float(startup)) if ready_at is not None and startup is not None else float("nan"),
         frame_ms=float(s["timing_ms"]["frame_total"]["median"]),
         ate=keyframe_ate(gt, out / "KeyFrameTrajectory.txt"),
+        cam_ate=keyframe_ate(gt, out / "CameraTrajectory.txt"),
         kernels=kernels_of(s),
     )
     row["fps"] = fps(row["frames"], row["loop_s"])
@@ -749,6 +776,7 @@ def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, setti
         frame_ms=statistics.median(track_ms) if track_ms else 0.0, load_s=float(res["load_s"]),
         start_s=(float(res["first_in_monotonic"]) - t0) if res.get("first_in_monotonic") is not None else float("nan"),
         ate=keyframe_ate(gt, kf_path),
+        cam_ate=keyframe_ate(gt, out / "CameraTrajectory.txt"),
     )
     row["fps"] = fps(row["frames"], row["loop_s"])
     span_cpu(row, cpu, t0)
@@ -757,7 +785,7 @@ def run_peer(args: argparse.Namespace, sequence: Any, n: int, vocab: Path, setti
 
 COLUMNS = (
     ("run", 4), ("system", 13), ("frames", 6), ("tracked", 7), ("lost", 5), ("maps", 4), ("KFs", 4),
-    ("KF ATE cm", 10), ("pairs", 5), ("frames/s", 8), ("ms/frame", 8), ("span s", 7), ("start s", 7),
+    ("KF ATE cm", 10), ("pairs", 5), ("cam ATE cm", 10), ("pairs", 5), ("frames/s", 8), ("ms/frame", 8), ("span s", 7), ("start s", 7),
     ("shut s", 6), ("CPU s", 6), ("CPU ms/f", 8),
 )
 
@@ -765,11 +793,12 @@ COLUMNS = (
 def format_row(run: str, row: dict[str, Any]) -> str:
     if "error" in row:
         return f"{run:>4s} {row['system']:<13s} failed: {row['error']}"
-    ate = row["ate"]
-    ate_s = f"{100 * ate['rmse_m']:.2f}" if "rmse_m" in ate else "n/a"
-    pairs = str(ate.get("pairs", "-"))
+    ates = []
+    for key in ("ate", "cam_ate"):
+        ate = row.get(key, {})
+        ates += [f"{100 * ate['rmse_m']:.2f}" if "rmse_m" in ate else "n/a", str(ate.get("pairs", "-"))]
     vals = (run, row["system"], f"{row['frames']:.0f}", f"{row['tracked']:.0f}", f"{row['lost']:.0f}",
-            f"{row['maps']:.0f}", f"{row['keyframes']:.0f}", ate_s, pairs, f"{row['fps']:.2f}",
+            f"{row['maps']:.0f}", f"{row['keyframes']:.0f}", *ates, f"{row['fps']:.2f}",
             f"{row['frame_ms']:.1f}", f"{row['loop_s']:.2f}", f"{row['start_s']:.2f}", f"{row['shutdown_s']:.2f}",
             f"{row['cpu_s']:.1f}", f"{row.get('cpu_ms_per_frame', float('nan')):.1f}")
     return " ".join(f"{v:<{w}s}" if name == "system" else f"{v:>{w}s}" for (name, w), v in zip(COLUMNS, vals))
@@ -785,9 +814,10 @@ def median_row(rows: list[dict[str, Any]], system: str) -> dict[str, Any] | None
                 "shutdown_s", "cpu_s", "cpu_ms_per_frame"):
         vals = [r[key] for r in ok if r.get(key, float("nan")) == r.get(key, float("nan"))]
         med[key] = statistics.median(vals) if vals else float("nan")
-    ates = [r["ate"] for r in ok if "rmse_m" in r["ate"]]
-    med["ate"] = ({"rmse_m": statistics.median(a["rmse_m"] for a in ates), "pairs": f"{len(ates)}/{len(rows)}"}
-                  if ates else {"error": "none"})
+    for key in ("ate", "cam_ate"):
+        ates = [r[key] for r in ok if "rmse_m" in r.get(key, {})]
+        med[key] = ({"rmse_m": statistics.median(a["rmse_m"] for a in ates), "pairs": f"{len(ates)}/{len(rows)}"}
+                    if ates else {"error": "none"})
     return med
 
 
@@ -976,7 +1006,7 @@ def main() -> int:
           f"load beside each run: {args.load}; outputs in {out}")
     print("tracked: ours, frames with a pose in the final map; ORB-SLAM3, frames in state OK. lost: ours LOST, "
           "ORB-SLAM3 RECENTLY_LOST or LOST. maps: initialisations (a new map after each reset or loss). "
-          "KFs: keyframes of the final map. KF ATE: RMSE after Sim(3) alignment. frames/s: frames / span s, "
+          "KFs: keyframes of the final map. KF ATE / cam ATE: RMSE after Sim(3) alignment of the keyframes / of every frame with a pose (ours: CameraTrajectory.txt; ORB-SLAM3: its SaveTrajectoryEuRoC). frames/s: frames / span s, "
           "from the first image handed in (ours: its extraction starts; ORB-SLAM3: its first TrackMonocular) "
           "to the last pose out. start s (not in the span): from the bench starting the process to the first "
           "image handed in. shut s (not in the span): from the last pose out to the system stopped (ours: its "
@@ -1060,15 +1090,27 @@ def main() -> int:
             o, q = rows["orbslam-hgcn"][i], rows["ORB-SLAM3"][i]
             sides = "; ".join(
                 f"{r['system']} failed" if "error" in r else
-                f"{r['system']} tracked {r['tracked']:.0f}, {r['fps']:.2f} frames/s, start {r['start_s']:.2f} s, "
+                f"{r['system']} tracked {r['tracked']:.0f}, {r['keyframes']:.0f} keyframes, "
+                f"keyframe ATE {ate_cm(r['ate'])}, camera ATE {ate_cm(r['cam_ate'])}, "
+                f"{r['fps']:.2f} frames/s, start {r['start_s']:.2f} s, "
                 f"shutdown {r['shutdown_s']:.2f} s, CPU {r.get('cpu_ms_per_frame', float('nan')):.1f} ms/frame"
                 for r in (o, q))
             figs.append((f"run {i + 1}", f"{sides}; {describe_verdict(verdict, n)}"))
+        for system, rs in rows.items():
+            med = median_row(rs, system)
+            if med is not None:
+                figs.append((f"median {system}", f"tracked {med['tracked']:.0f}, {med['keyframes']:.0f} keyframes, "
+                             f"keyframe ATE {ate_cm(med['ate'])}, camera ATE {ate_cm(med['cam_ate'])}, "
+                             f"{med['fps']:.2f} frames/s, CPU {med['cpu_ms_per_frame']:.1f} ms/frame"))
         figs.append(("median", summary_line))
         record(args.record, f"ORB-SLAM3 beside `orbslam-hgcn run` on {sequence.name} ({n} frames, {pace})", figs,
                load_start=load_start, notes=f"pyorbslam3 {version}, {peer_features} ORB features, "
                f"ours with {args.ours_args or 'defaults'}")
     return 0
+
+
+def ate_cm(ate: dict[str, Any]) -> str:
+    return f"{100 * ate['rmse_m']:.2f} cm" if "rmse_m" in ate else "n/a"
 
 
 def kernels_of(stats: dict[str, Any]) -> str:

@@ -137,6 +137,46 @@ def test_median_ratio_is_none_without_a_valid_run(bp):
     assert bp.median_ratio([]) is None
 
 
+# --- accuracy beside speed ---------------------------------------------------------------
+
+
+def test_orbslam3s_euroc_trajectory_becomes_a_tum_file_that_scores_like_ours(bp, tmp_path):
+    """ORB-SLAM3 writes a monocular camera trajectory only in EuRoC's layout (nanoseconds);
+    rewritten as TUM it must give the same poses at the same times, and score 0 against
+    itself."""
+    from orbslam_hgcn.trajectory import read_tum
+
+    stamps = [1341845820.819654, 1341845822.495728, 1341845823.5]
+    rows = [(0.0, 0.0, 0.0), (0.1, -0.2, 0.3), (0.4, 0.1, 1.2)]
+    src = tmp_path / "CameraTrajectory_euroc.txt"
+    src.write_text("".join(f"{t * 1e9:.6f} {x} {y} {z} 0 0 0 1\n" for t, (x, y, z) in zip(stamps, rows)))
+    dst = tmp_path / "CameraTrajectory.txt"
+    assert bp.euroc_to_tum(src, dst) == 3
+    traj = read_tum(dst)
+    assert traj.timestamps == pytest.approx(stamps, abs=1e-6)
+    assert traj.positions.ravel() == pytest.approx([v for r in rows for v in r])
+    ate = bp.keyframe_ate(traj, dst)
+    assert ate["pairs"] == 3 and ate["rmse_m"] == pytest.approx(0.0, abs=1e-9)
+    assert bp.euroc_to_tum(tmp_path / "missing.txt", tmp_path / "none.txt") == 0
+    assert not (tmp_path / "none.txt").exists()
+    assert "error" in bp.keyframe_ate(traj, tmp_path / "none.txt")
+
+
+def test_rows_and_medians_carry_keyframe_and_camera_ate(bp):
+    def full(ate_cm, cam_cm):
+        return {"system": "ORB-SLAM3", "frames": 160, "tracked": 159, "lost": 0, "maps": 1, "keyframes": 88,
+                "ate": {"rmse_m": ate_cm / 100, "pairs": 88}, "cam_ate": {"rmse_m": cam_cm / 100, "pairs": 159},
+                "fps": 10.0, "frame_ms": 30.0, "loop_s": 16.0, "start_s": 3.0, "shutdown_s": 0.1, "cpu_s": 9.0,
+                "cpu_ms_per_frame": 90.0}
+
+    line = bp.format_row("1", full(36.5, 38.25))
+    assert "36.50" in line and "38.25" in line
+    med = bp.median_row([full(30.0, 40.0), full(36.0, 34.0), full(40.0, 41.0)], "ORB-SLAM3")
+    assert med["ate"]["rmse_m"] == pytest.approx(0.36) and med["cam_ate"]["rmse_m"] == pytest.approx(0.40)
+    assert med["cam_ate"]["pairs"] == "3/3"
+    assert bp.ate_cm(med["cam_ate"]) == "40.00 cm" and bp.ate_cm({"error": "none"}) == "n/a"
+
+
 # --- the gate ------------------------------------------------------------------------------
 
 
