@@ -21,7 +21,10 @@ mapping is idle: its keyframe rate is set by how long local mapping takes on the
 is always idle (sequential mode, or a fast machine) made a keyframe on nearly every frame
 of forward driving (141 for 160 KITTI frames, against 19-41 for ORB-SLAM3 on the same
 frames), and threaded runs mapped differently on machines of different speed. With it,
-the keyframes do not depend on the machine as long as local mapping keeps up.
+the keyframes do not depend on the machine as long as local mapping keeps up. The KITTI
+camera settings set it to 0.15 s (every other frame at 10 Hz): ORB-SLAM3 at the camera's
+rate on a 2-core machine keeps 80-92 keyframes of KITTI 00's first 160 frames, and 52
+keyframes at 0.3 s left the map's accuracy behind it.
 """
 
 from __future__ import annotations
