@@ -62,6 +62,16 @@ KEY_LINES = [
      "in most runs)"),
     ("peer_kitti00_paced", "median", None, "the same at the camera's rate, where both track every frame: the ratio of "
      "frames/s is the pace's; CPU per frame is the comparison"),
+    ("peer_kitti00_paced", "median orbslam-hgcn", None,
+     "accuracy in the same runs, KITTI 00 at the camera's rate: ours (one map on every run)"),
+    ("peer_kitti00_paced", "median ORB-SLAM3", None,
+     "ORB-SLAM3, medians over the runs"),
+    ("peer_kitti00", "median ORB-SLAM3", None,
+     "ORB-SLAM3 on KITTI 00 unpaced (fewer keyframes: its local mapping refuses them while busy), medians"),
+    ("peer_sitting_xyz", "median orbslam-hgcn", None,
+     "real TUM fr3 sitting_xyz (148 frames at about 5 Hz, people in view) at the camera's rate beside ORB-SLAM3: ours"),
+    ("peer_sitting_xyz", "median ORB-SLAM3", None,
+     "ORB-SLAM3, medians over the runs"),
     ("startup_fresh_clone", "median", None,
      "start-up in a fresh clone after `bash tools/setup.sh`, its first runs: from the command to the first frame "
      "handed in (KITTI 00)"),
