@@ -85,11 +85,6 @@ its start-up apart), and against ORB-SLAM3's start s + span s (both counted); fr
 same on both sides, so each ratio is a ratio of times; and the CPU per frame, ORB-SLAM3's over
 ours' (above 1: ours spent less). ``--record NAME`` writes these figures through ``bench/figures.py``.
 
-Real sequences to run it on: ``../shared/data/kitti00_first160/sequences/00`` (``--dataset
-kitti``, driving) and ``../shared/data/tum_fr3_sitting_xyz_148`` (``--dataset tum``, a camera
-moved over one desk at about 5 Hz with people in view); ``--speed 1`` compares accuracy and
-CPU per frame where both keep up, ``--speed 0`` throughput.
-
 ``--gate`` checks a vocabulary: it runs ORB-SLAM3 alone (``--runs`` times) with
 ``--peer-vocab`` (default: the shared file above) and prints the frames tracked of those
 given, run by run. Exit status 0 when the median run tracks at least 98% of them
