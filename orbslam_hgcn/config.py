@@ -16,7 +16,8 @@ Camera files (the shipped ones in ``orbslam_hgcn/configs/*.yaml``) use one flat 
 The same keys may instead sit under a ``camera:`` section of a larger file. Every value is
 validated on load; an error names the file and the key. A file may also carry stage
 sections (``orb:``, ``tracking:``, ...; see :class:`~orbslam_hgcn.runtime.system.Configs`):
-each shipped camera carries the settings ORB-SLAM's example files use for it.
+each shipped camera carries the settings ORB-SLAM's example files use for it. A section
+that no stage reads is refused (:func:`check_sections`), as an unknown key is.
 
 Stage configs are frozen dataclasses defined below, each with its defaults beside their
 meaning; :func:`section_from_yaml` fills one from a YAML section and rejects unknown keys.
@@ -25,6 +26,7 @@ meaning; :func:`section_from_yaml` fills one from a YAML section and rejects unk
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import importlib.resources
 import math
 from pathlib import Path
@@ -207,6 +209,26 @@ def camera_to_dict(cam: PinholeCamera) -> dict[str, Any]:
 
 def save_camera(path: str | Path, cam: PinholeCamera) -> None:
     Path(path).write_text(yaml.safe_dump(camera_to_dict(cam), sort_keys=False), encoding="utf-8")
+
+
+# Sections a run's config file may hold besides the stages' (runtime.system.Configs): the
+# camera, the live viewer's (viz), and those of the commands that may share a file with it
+# (lcd's fabmap, vocab train's hgcn and vocab_tree).
+OTHER_SECTIONS = ("camera", "viz", "fabmap", "hgcn", "vocab_tree")
+# What to say, instead of a close match, of sections people write that are no settings.
+NOT_SETTINGS = {"vocabulary": "the vocabulary is no config setting: choose it with --vocab NAME|FILE"}
+
+
+def check_sections(data: dict[str, Any] | None, path: str | Path, stages: list[str]) -> None:
+    """Raise ConfigError, naming the file, for a section (a mapping at the top of a config
+    file) that neither a stage (``stages``, the section names) nor :data:`OTHER_SECTIONS`
+    reads: a misspelt ``orbb:`` would otherwise be ignored without a word."""
+    known = list(stages) + list(OTHER_SECTIONS)
+    for key, value in (data or {}).items():
+        if isinstance(value, dict) and key not in known:
+            close = difflib.get_close_matches(str(key), known, n=1)
+            hint = f"{NOT_SETTINGS[key]}; " if key in NOT_SETTINGS else f"did you mean {close[0]!r}? " if close else ""
+            raise ConfigError(f"{where(path, key=str(key))}: unknown section; {hint}known sections: {', '.join(known)}")
 
 
 def section_from_yaml(cls: type[T], data: dict[str, Any] | None, path: str | Path, section: str) -> T:

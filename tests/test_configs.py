@@ -160,3 +160,44 @@ def test_config_overrides_dataset_settings_key_by_key(tmp_path):
     bad.write_text("orb: {n_featurez: 3}\n")
     with pytest.raises(ConfigError, match=r"bad\.yaml.*orb\.n_featurez"):
         Configs.from_layers([({}, "kitti"), (yaml.safe_load(bad.read_text()), bad)])
+
+
+@pytest.mark.parametrize("text, section, said", [
+    ("orbb: {n_features: 1500}\n", "orbb", "did you mean 'orb'"),
+    ("vocabulary: {kind: hgcn}\n", "vocabulary", "--vocab"),
+    ("tracking: {min_inliers: 40}\nlocal_maping: {ba_max_keyframes: 5}\n", "local_maping", "did you mean 'local_mapping'"),
+])
+def test_a_section_no_stage_reads_is_refused(tmp_path, capsys, text, section, said):
+    """A misspelt section (or one that is no setting) would otherwise be ignored without a
+    word: the API raises a ConfigError naming the file and the section, and `run` says so in
+    one line with status 2 before it makes anything."""
+    import yaml
+
+    from orbslam_hgcn import cli
+    from orbslam_hgcn.runtime.system import Configs
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    with pytest.raises(ConfigError, match=rf"bad\.yaml \[{section}\]: unknown section"):
+        Configs.from_yaml(bad)
+    with pytest.raises(ConfigError, match=section):
+        Configs.from_layers([({}, "kitti"), (yaml.safe_load(text), bad)])
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    assert cli.main(["run", str(seq), "--out", str(tmp_path / "out"), "--config", str(bad)]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and section in err[0] and said in err[0] and "Traceback" not in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+def test_every_section_a_shipped_config_or_the_viewer_uses_is_accepted(tmp_path):
+    """The camera and the sections other commands read from the same file still load."""
+    from orbslam_hgcn.runtime.system import Configs
+
+    ok = tmp_path / "ok.yaml"
+    ok.write_text("camera: {name: c, model: pinhole, width: 640, height: 480, fps: 30, fx: 500, fy: 500, "
+                  "cx: 320, cy: 240, distortion: [0, 0, 0, 0, 0]}\nviz: {}\nfabmap: {}\nhgcn: {}\nvocab_tree: {}\n"
+                  "orb: {n_features: 1500}\n")
+    assert Configs.from_yaml(ok).orb.n_features == 1500
+    for path in sorted(CONFIG_DIR.glob("*.yaml")):
+        Configs.from_yaml(path)

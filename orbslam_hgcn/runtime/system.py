@@ -58,6 +58,7 @@ from orbslam_hgcn.config import (
     SystemConfig,
     ThreadsConfig,
     TrackingConfig,
+    check_sections,
     load_yaml,
     section_from_yaml,
 )
@@ -163,8 +164,11 @@ class Configs:
     def from_layers(cls, layers: list[tuple[dict[str, Any], str | Path]]) -> Configs:
         """Defaults, overridden key by key by each layer in turn: (the mapping of a config
         file, its path for error messages). Each layer is validated on its own, so an error
-        names the file that holds the bad key."""
+        names the file that holds the bad key, or the section no stage knows."""
         defaults = cls()
+        stages = [f.name for f in dataclasses.fields(cls)]
+        for data, path in layers:
+            check_sections(data, path, stages)
         kw = {}
         for f in dataclasses.fields(cls):
             section_type = type(getattr(defaults, f.name))
