@@ -2,10 +2,12 @@
 the keyframe rules, and the LOST state on frames without texture."""
 
 
+import threading
+
 import numpy as np
 import pytest
 
-from orbslam_hgcn.config import ORBConfig, TrackingConfig
+from orbslam_hgcn.config import LocalMappingConfig, ORBConfig, TrackingConfig
 from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.features.keypoints import KeypointSet
 from orbslam_hgcn.features.orb import ORBExtractor
@@ -67,11 +69,13 @@ def test_initialisation_recovers_relative_pose(synth_seq):
     assert check_invariants(m) == []
 
 
-def test_tracker_follows_the_camera(synth_seq):
+@pytest.mark.parametrize("beside", [True, False], ids=["ba-beside-mapping", "orb-slam-order"])
+def test_tracker_follows_the_camera(synth_seq, beside):
     """Tracker and local mapper over 40 frames: every frame after initialisation tracked,
-    relative motion matching the ground truth after one scale."""
+    relative motion matching the ground truth after one scale; local BA solved beside
+    triangulation and fusion (the default) or after them (ORB-SLAM's order)."""
     m = Map()
-    mapper = LocalMapper(m)
+    mapper = LocalMapper(m, LocalMappingConfig(ba_beside_mapping=beside))
     tracker = Tracker(m, extractor=ORBExtractor(ORBConfig()), camera=synth_seq.camera)
     poses, gts = {}, {}
     for i in range(40):
@@ -96,6 +100,59 @@ def test_tracker_follows_the_camera(synth_seq):
         assert rotation_angle_deg(T[:3, :3] @ G[:3, :3].T) < 0.3
         assert np.linalg.norm(s * T[:3, 3] - G[:3, 3]) < 0.1 * np.linalg.norm(G_rel[-1][:3, 3]) + 2e-3
     assert check_invariants(m) == []
+
+
+def _mapped_run(synth_seq, monkeypatch, beside: bool, frames: int = 30):
+    """Track and map ``frames`` frames; returns (keyframe poses by id, the local mapper's
+    events: "fused" (fusion finished), "write" (a local BA written back) and ("solve", the
+    solving thread's name), in order)."""
+    from orbslam_hgcn.mapping import local_mapper as lm
+
+    events: list = []
+    fuse, write = lm.search_in_neighbors, lm.apply_window
+
+    def fused(*a, **k):
+        out = fuse(*a, **k)
+        events.append("fused")
+        return out
+
+    monkeypatch.setattr(lm, "search_in_neighbors", fused)
+    monkeypatch.setattr(lm, "apply_window", lambda *a, **k: events.append("write") or write(*a, **k))
+    m = Map()
+    mapper = LocalMapper(m, LocalMappingConfig(ba_beside_mapping=beside))
+    solve = mapper.solver.local_ba
+    mapper.solver.local_ba = lambda *a, **k: events.append(("solve", threading.current_thread().name)) or solve(*a, **k)
+    tracker = Tracker(m, extractor=ORBExtractor(ORBConfig()), camera=synth_seq.camera)
+    for i in range(frames):
+        r = tracker.track_image(synth_seq[i].image, synth_seq[i].timestamp)
+        for kf in r.new_keyframes:
+            mapper.process(kf)
+    assert tracker.state == TrackingState.OK
+    return {kf.id: kf.T_cw.copy() for kf in tracker.map.keyframes()}, events
+
+
+def test_local_ba_beside_triangulation_is_written_after_fusion_and_repeatable(synth_seq, monkeypatch):
+    """By default local BA is solved in a thread of its own while the mapping thread
+    triangulates and fuses, and written back only after fusion; a second run gives the same
+    keyframe poses bit for bit (the result does not depend on which thread got the CPU).
+    In ORB-SLAM's order it is solved on the mapping thread after fusion."""
+    poses, events = _mapped_run(synth_seq, monkeypatch, beside=True)
+    solves = [e for e in events if isinstance(e, tuple)]
+    assert len(solves) >= 3 and all(name.startswith("local-ba") for _, name in solves)
+    plain = [e for e in events if not isinstance(e, tuple)]
+    assert plain.count("write") >= 3
+    # Every write-back comes after its keyframe's fusion finished: never two writes without a
+    # fusion between them, nor a write before the first fusion.
+    assert all(plain[i - 1] == "fused" for i, e in enumerate(plain) if e == "write")
+    again, _ = _mapped_run(synth_seq, monkeypatch, beside=True)
+    assert again.keys() == poses.keys()
+    for k in poses:
+        np.testing.assert_array_equal(again[k], poses[k])
+    _, events = _mapped_run(synth_seq, monkeypatch, beside=False)
+    solves = [e for e in events if isinstance(e, tuple)]
+    assert solves and all(name == threading.current_thread().name for _, name in solves)
+    # ORB-SLAM's order: each solve starts after its keyframe's fusion finished.
+    assert all(events[i - 1] == "fused" for i, e in enumerate(events) if isinstance(e, tuple))
 
 
 def test_tracking_and_mapping_with_a_vocabulary(synth_seq, monkeypatch):

@@ -15,12 +15,14 @@ Sec. VI; LocalMapping::Run of ORB-SLAM2), in its order:
    ``track_words``; with ``track_words_by: network`` from the graph network over each
    feature's causal track mates, :mod:`orbslam_hgcn.vocabulary.track_network`) before the
    loop closer adds it to the keyframe database;
-5. local bundle adjustment (gtsam, via :mod:`orbslam_hgcn.backend`): the keyframe and its
-   covisible keyframes free, every other keyframe seeing their points fixed, Huber
-   kernel, 5 iterations, outliers out, 10 more, CPU time bounded, and stopped early when
-   ``should_abort`` says so (ORB-SLAM's abort flag, raised when a new keyframe waits; by
-   default it takes effect after the 5 robust iterations, see
-   ``BackendConfig.local_ba_abort_robust``);
+5. local bundle adjustment (the compiled solver or gtsam, via :mod:`orbslam_hgcn.backend`):
+   the keyframe and its covisible keyframes free, every other keyframe seeing their points
+   fixed, Huber kernel, 5 iterations, outliers out, 10 more, CPU time bounded, and stopped
+   early when ``should_abort`` says so (ORB-SLAM's abort flag, raised when a new keyframe
+   waits; by default it takes effect after the 5 robust iterations, see
+   ``BackendConfig.local_ba_abort_robust``). With ``ba_beside_mapping`` (the default) its
+   window is cut right after step 2 and solved in a thread of its own during steps 3 and 4,
+   and written back here; otherwise it is cut and solved here (ORB-SLAM's order);
 6. redundant keyframe culling.
 
 Each step holds the map lock; local BA holds it only to cut its window from the map and
@@ -40,6 +42,7 @@ import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -95,6 +98,7 @@ class LocalMapper:
         self.on_points: Callable[[KeyFrame], None] | None = None
         self.before_changes: Callable[[KeyFrame], None] | None = None
         self._changing = -1  # the keyframe before_changes was called for
+        self._pool: ThreadPoolExecutor | None = None  # solves local BA beside triangulation (ba_beside_mapping)
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.counts: dict[str, int] = defaultdict(int)
         self.reset(m)
@@ -131,6 +135,11 @@ class LocalMapper:
                 self._insert(kf)
         with self._timed("cull_points"), m.lock:
             self.recent, n_cull = cull_recent_points(m, self.recent, kf.id, cfg)
+        beside = None  # (window, future): local BA solved while triangulation and fusion run
+        if cfg.ba_beside_mapping and self._wants_ba(kf):
+            with m.lock:
+                window = local_window(m, kf.id, cfg.ba_max_keyframes or None)
+            beside = (window, self._ba_pool().submit(self._solve, kf, window))
         # These two take the map lock per neighbour keyframe.
         with self._timed("triangulate"):
             new = create_new_points(m, kf, cfg)
@@ -140,7 +149,7 @@ class LocalMapper:
         # Local BA's window is cut from the map as fusion left it, before on_points lets the
         # tracker change it (a keyframe of the next frame adds observations).
         window = None
-        if cfg.local_ba and m.n_keyframes() > 2 and not kf.bad:
+        if beside is None and self._wants_ba(kf):
             with m.lock:
                 window = local_window(m, kf.id, cfg.ba_max_keyframes or None)
         if self.on_points is not None:
@@ -151,11 +160,16 @@ class LocalMapper:
                 self._track_bow(kf)
             self.timings["track_words_cpu"].append(1000.0 * (time.thread_time() - c))
         ba_ms = ba_cpu_ms = 0.0
-        if window is not None:
-            t, c = time.perf_counter(), time.process_time()
-            self._local_ba(kf, window)
+        if beside is not None:  # the time left to wait for it, and its CPU time
+            t = time.perf_counter()
+            res, ba_cpu_ms = beside[1].result()
+            self._write_ba(kf, beside[0], res)
             ba_ms = 1000.0 * (time.perf_counter() - t)
-            ba_cpu_ms = 1000.0 * (time.process_time() - c)
+        elif window is not None:
+            t = time.perf_counter()
+            res, ba_cpu_ms = self._solve(kf, window)
+            self._write_ba(kf, window, res)
+            ba_ms = 1000.0 * (time.perf_counter() - t)
         self.timings["local_ba"].append(ba_ms)
         self.timings["local_ba_cpu"].append(ba_cpu_ms)
         self._changes(kf)
@@ -219,12 +233,23 @@ class LocalMapper:
         kf.bow, _ = self.track_words.keyframe_bow(kf.id, kf.keypoints.desc, words, idx, pids, obs,
                                                   descs.__getitem__, x=x)
 
-    def _local_ba(self, kf: KeyFrame, w: Any) -> None:
-        """Solve local BA over the window ``w`` (map.window.local_window of ``kf``) and
-        write the result back."""
-        m = self.map
+    def _wants_ba(self, kf: KeyFrame) -> bool:
+        return self.config.local_ba and self.map.n_keyframes() > 2 and not kf.bad
+
+    def _ba_pool(self) -> ThreadPoolExecutor:
+        """The thread that solves local BA beside triangulation and fusion, started by the
+        mapping thread (so it inherits that thread's niceness) on first use."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="local-ba")
+        return self._pool
+
+    def _solve(self, kf: KeyFrame, w: Any) -> tuple[Any, float]:
+        """Local BA over the window ``w`` (map.window.local_window of ``kf``), the map
+        untouched: (the solver's result or None when there was nothing to solve or the
+        solver process was lost, the CPU ms of the calling thread)."""
+        c = time.thread_time()
         if w.n_observations == 0 or not (~w.fixed).any():
-            return
+            return None, 0.0
         problem = as_problem(w.T_cw, w.fixed, w.points, w.obs_kf, w.obs_pt, w.uv, w.inv_sigma2, w.K)
         self.in_ba = True
         try:
@@ -236,15 +261,21 @@ class LocalMapper:
                 raise
             self.counts["ba_process_lost"] += 1
             log.warning("local BA of keyframe %d skipped: %s; the next one starts a new process", kf.id, exc)
-            return
+            return None, 1000.0 * (time.thread_time() - c)
         finally:
             self.in_ba = False
         self.counts["ba_budget_hit"] += int(budget_hit)
         self.counts["ba_aborted"] += int(self.should_abort is not None and bool(self.should_abort()))
-        self._changes(kf)
-        erased = apply_window(m, w, res.T_cw, res.points, res.outlier)
-        self.counts["ba_outliers_erased"] += erased
         self.counts["ba_keyframes_free"] += int((~w.fixed).sum())
+        return res, 1000.0 * (time.thread_time() - c)
+
+    def _write_ba(self, kf: KeyFrame, w: Any, res: Any) -> None:
+        """Write a local BA result over window ``w`` back into the map (keyframes and
+        points that became bad meanwhile, fusion's merged points among them, are skipped)."""
+        if res is None:
+            return
+        self._changes(kf)
+        self.counts["ba_outliers_erased"] += apply_window(self.map, w, res.T_cw, res.points, res.outlier)
 
     def _changes(self, kf: KeyFrame) -> None:
         """Call before_changes once per keyframe, before its first change after fusion."""

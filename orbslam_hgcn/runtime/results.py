@@ -31,7 +31,8 @@ pickles), to see how costs grow over a long run (``bench/bench_long.py``):
   counted only so often, since counting walks the map);
 * per keyframe local mapping finished, in order: ``kf_id``, ``kf_frame`` (the frame it was
   made from), ``kf_mapping_ms`` and ``kf_local_ba_ms`` (as ``local_mapping_per_keyframe``
-  and ``local_ba_per_keyframe``), ``kf_wall`` (``time.time()`` when mapping finished it);
+  and ``local_ba_per_keyframe``: the time local mapping waited for its local BA after fusion
+  and wrote it back), ``kf_wall`` (``time.time()`` when mapping finished it);
 * per keyframe checked for a loop, in order: ``loop_kf_id``, ``loop_detect_ms`` (detection:
   database purge, query, consistency, indexing), ``loop_query_ms`` (the keyframe
   database's loop query alone; NaN when detection was skipped, too soon after the map's
