@@ -143,7 +143,10 @@ def test_short_real_kitti_run_as_a_user_runs_it(kitti_sample, tmp_path, capsys):
 
 
 def test_real_kitti_frames_40_to_99_against_ground_truth(kitti_sample):
-    """60 frames of straight driving from frame 40, sequential: keyframe ATE 5.04 cm here."""
+    """60 frames of straight driving from frame 40, sequential, KITTI's settings: keyframe
+    ATE 6.06 cm here (29 keyframes); with local BA in ORB-SLAM's order
+    (local_mapping.ba_beside_mapping false) 5.01 cm, which the full 160 frames reverse
+    (37.16 against 38.79 cm)."""
     seq = open_sequence("kitti", kitti_sample)
     path, settings = dataset_settings(seq.camera, "kitti")
     system = System(seq.camera, Configs.from_layers([(settings, path)]), sequential=True)
@@ -151,7 +154,7 @@ def test_real_kitti_frames_40_to_99_against_ground_truth(kitti_sample):
     stats = system.stats()
     assert stats["frames"]["tracked"] >= 58 and stats["map_resets"] == 0
     ate = trajectory_ate(seq.ground_truth, system.keyframe_trajectory())
-    assert ate["pairs"] >= 12 and ate["rmse_m"] < 0.06, ate  # 5.04 cm measured; 1 cm margin
+    assert ate["pairs"] >= 12 and ate["rmse_m"] < 0.07, ate  # 6.06 cm measured; 1 cm margin
     assert check_invariants(system.map) == []
 
 

@@ -452,6 +452,10 @@ class System:
         # Per frame of timings["frame"]: whether a BA or pose graph was being solved during it,
         # and when (time.perf_counter) the frame's extraction started.
         self.frame_optimising: list[bool] = []
+        # (stages, their count of optimisations started) when the last frame's pose came
+        # out: an optimisation started during the waits after it (local BA beside
+        # triangulation runs in them) counts for the next frame, whose latency holds them.
+        self._activity_mark: tuple[Any, int] | None = None
         self.frame_started: list[float] = []
         # The series of series.npz (runtime/results.py): per frame processed (frame, timestamp,
         # tracking ms or NaN, frame ms, time.time()); every COUNT_EVERY-th frame (frame, the
@@ -591,6 +595,8 @@ class System:
         stages = self.stages
         stages.check()
         started, optimising = stages.activity.started, stages.optimising
+        if self._activity_mark is not None and self._activity_mark[0] is stages:
+            started = self._activity_mark[1]
         if not self.tracker.can_recover:
             return self.tracker.skip(frame_id, timestamp)
         extractor = self._extractor_now()
@@ -648,6 +654,7 @@ class System:
                                   result.cpu_ms if tracked else math.nan))  # fmt: skip
         optimising = optimising or stages.optimising or stages.activity.started != started
         self.frame_optimising.append(bool(optimising))
+        self._activity_mark = (stages, stages.activity.started)
         if hold:
             self._pipeline_mapping(result, stages, submitted)
         elif sync and threads.mapping_sync == "due":
