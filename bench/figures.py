@@ -66,8 +66,6 @@ KEY_LINES = [
      "accuracy in the same runs, KITTI 00 at the camera's rate: ours (one map on every run)"),
     ("peer_kitti00_paced", "median ORB-SLAM3", None,
      "ORB-SLAM3, medians over the runs"),
-    ("peer_kitti00", "median ORB-SLAM3", None,
-     "ORB-SLAM3 on KITTI 00 unpaced (fewer keyframes: its local mapping refuses them while busy), medians"),
     ("peer_sitting_xyz", "median orbslam-hgcn", None,
      "real TUM fr3 sitting_xyz (148 frames at about 5 Hz, people in view) at the camera's rate beside ORB-SLAM3: ours"),
     ("peer_sitting_xyz", "median ORB-SLAM3", None,
