@@ -146,8 +146,8 @@ class LocalMapper:
             self.recent = np.concatenate([self.recent, new])
         with self._timed("fuse"):
             fused = search_in_neighbors(m, kf, cfg)
-        # In ORB-SLAM's order local BA's window is cut from the map as fusion left it, before
-        # on_points lets the tracker change it (a keyframe of the next frame adds observations).
+        # Local BA's window is cut from the map as fusion left it, before on_points lets the
+        # tracker change it (a keyframe of the next frame adds observations).
         window = None
         if beside is None and self._wants_ba(kf):
             with m.lock:
