@@ -135,23 +135,21 @@ class LocalMapper:
                 self._insert(kf)
         with self._timed("cull_points"), m.lock:
             self.recent, n_cull = cull_recent_points(m, self.recent, kf.id, cfg)
-        beside = None  # (window, future): local BA solved while triangulation and fusion run
+        # Local BA: (window, the future solving it beside triangulation and fusion, or None)
+        ba = None
         if cfg.ba_beside_mapping and self._wants_ba(kf):
-            with m.lock:
-                window = local_window(m, kf.id, cfg.ba_max_keyframes or None)
-            beside = (window, self._ba_pool().submit(self._solve, kf, window))
+            window = self._window(kf)
+            ba = (window, self._ba_pool().submit(self._solve, kf, window))
         # These two take the map lock per neighbour keyframe.
         with self._timed("triangulate"):
             new = create_new_points(m, kf, cfg)
             self.recent = np.concatenate([self.recent, new])
         with self._timed("fuse"):
             fused = search_in_neighbors(m, kf, cfg)
-        # Local BA's window is cut from the map as fusion left it, before on_points lets the
-        # tracker change it (a keyframe of the next frame adds observations).
-        window = None
-        if beside is None and self._wants_ba(kf):
-            with m.lock:
-                window = local_window(m, kf.id, cfg.ba_max_keyframes or None)
+        # In ORB-SLAM's order local BA's window is cut from the map as fusion left it, before
+        # on_points lets the tracker change it (a keyframe of the next frame adds observations).
+        if ba is None and self._wants_ba(kf):
+            ba = (self._window(kf), None)
         if self.on_points is not None:
             self.on_points(kf)
         if self.track_words is not None and self._lone is not None and self._lone[0] == kf.id:
@@ -160,14 +158,10 @@ class LocalMapper:
                 self._track_bow(kf)
             self.timings["track_words_cpu"].append(1000.0 * (time.thread_time() - c))
         ba_ms = ba_cpu_ms = 0.0
-        if beside is not None:  # the time left to wait for it, and its CPU time
+        if ba is not None:  # beside: the time left to wait for it; its CPU time either way
             t = time.perf_counter()
-            res, ba_cpu_ms = beside[1].result()
-            self._write_ba(kf, beside[0], res)
-            ba_ms = 1000.0 * (time.perf_counter() - t)
-        elif window is not None:
-            t = time.perf_counter()
-            res, ba_cpu_ms = self._solve(kf, window)
+            window, solving = ba
+            res, ba_cpu_ms = solving.result() if solving is not None else self._solve(kf, window)
             self._write_ba(kf, window, res)
             ba_ms = 1000.0 * (time.perf_counter() - t)
         self.timings["local_ba"].append(ba_ms)
@@ -235,6 +229,11 @@ class LocalMapper:
 
     def _wants_ba(self, kf: KeyFrame) -> bool:
         return self.config.local_ba and self.map.n_keyframes() > 2 and not kf.bad
+
+    def _window(self, kf: KeyFrame) -> Any:
+        """Local BA's window around ``kf``, cut from the map under its lock."""
+        with self.map.lock:
+            return local_window(self.map, kf.id, self.config.ba_max_keyframes or None)
 
     def _ba_pool(self) -> ThreadPoolExecutor:
         """The thread that solves local BA beside triangulation and fusion, started by the
