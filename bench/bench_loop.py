@@ -183,7 +183,7 @@ def run(seq: Sequence, vocab_path: str, loop: bool, max_frames: int | None, out:
     vocab = load_vocabulary(vocab_path)
     configs = Configs()
     configs = dataclasses.replace(configs, loop_closing=dataclasses.replace(configs.loop_closing, enabled=loop))
-    system = System(seq.camera, configs, vocabulary=vocab)
+    system = System(seq.camera, configs, vocabulary=vocab, sequential=True)
     # Keyframe ATE just before and just after each loop correction.
     around: list[dict] = []
     closer = system.loop_closer

@@ -894,9 +894,8 @@ def gate_verdict(tracked: list[int], given: int, share: float = GATE_SHARE) -> t
 def ours_features(args: argparse.Namespace, camera: Any, kind: str) -> int | None:
     """ORB features per image that ``orbslam-hgcn run`` will use: the orb section of the
     stage settings it picks for the dataset's ``camera``, then of its --config."""
-    from orbslam_hgcn.config import dataset_settings, load_yaml, resolve_config
+    from orbslam_hgcn.app.settings import resolve_settings
     from orbslam_hgcn.errors import OrbslamError
-    from orbslam_hgcn.runtime.system import Configs
 
     config = args.config
     extra = shlex.split(args.ours_args)
@@ -906,12 +905,7 @@ def ours_features(args: argparse.Namespace, camera: Any, kind: str) -> int | Non
         elif tok.startswith("--config="):
             config = tok.split("=", 1)[1]
     try:
-        settings_path, settings = dataset_settings(camera, kind)
-        layers = [(settings, settings_path or "")]
-        if config is not None:
-            config = resolve_config(config)  # a file, or a shipped camera name
-            layers.append((load_yaml(config), config))
-        return Configs.from_layers(layers).orb.n_features
+        return resolve_settings(camera, kind, config).configs.orb.n_features
     except OrbslamError:
         return None
 

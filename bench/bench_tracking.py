@@ -62,7 +62,7 @@ def run_one(name: str, path: Path, max_frames: int | None, out: Path | None, voc
         # The vocabulary serves BoW matching (reference keyframe, triangulation pairs) and
         # relocalisation; loop closing stays off, as in every figure of this bench.
         configs = dataclasses.replace(configs, loop_closing=dataclasses.replace(configs.loop_closing, enabled=False))
-    system = System(seq.camera, configs, vocabulary=vocabulary)
+    system = System(seq.camera, configs, vocabulary=vocabulary, sequential=True)
     t0 = time.perf_counter()
     summary = system.run(seq, max_frames, progress=True)
     wall = time.perf_counter() - t0

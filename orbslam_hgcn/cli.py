@@ -151,113 +151,9 @@ def _run_eval(args: argparse.Namespace) -> int:
 
 @subcommand
 def _add_lcd(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "lcd",
-        help="compare loop-closure detectors (BoW, HGCN-BoW, FAB-MAP 2.0, HGCN-FABMAP)",
-        description="Train each detector on --train, run it over --test, score its confusion "
-        "matrix against the ground-truth loop matrix (recall, accuracy = precision, recall at "
-        "100% precision, AUC); write confusion matrices, PR curves and lcd_results.json. "
-        "The memory each detector needs (its (n, n) matrices over the test images; FAB-MAP: its "
-        "per-word tables and Chow-Liu tree, linear in the vocabulary) is checked against the memory "
-        "available (or $ORBSLAM_HGCN_MEMORY_LIMIT_MB) before it runs; when it does not fit, the command stops "
-        "with status 2: use a smaller vocabulary, --levels, or fewer images. By default a video-rate "
-        "sequence is sampled to about one image per distinct view (0.25 m or 15 deg of ground-truth "
-        "camera motion, else one image per 0.5 s). When its loop ground truth covers every frame and "
-        "that leaves fewer than 20 images that revisit an earlier one outside the exclusion window, or "
-        "fewer than 80 images, the spacing shrinks step by step (to 84% each, at last every frame) "
-        "until both are met; when even the densest cannot give 20, a warning says so. images_test.txt "
-        "and images_train.txt name the images used. A query is compared only with images outside an "
-        "exclusion window, chosen on the images as used: the ground truth's smallest loop separation, "
-        "else 10 s; the loops scored are the ground truth's revisits (true pairs joined to the "
-        "diagonal are one continuous visit, not loops, whatever the spacing). The recall/accuracy "
-        "thresholds are fitted on the training sequence (highest recall at 100% precision there; it "
-        "needs TRAIN/loop_gt.npy or --train-gt). AUC and recall at 100% precision are printed and "
-        "written with 95% confidence intervals: percentile bootstrap over the test queries (1000 "
-        "resamples with replacement, fixed seed), so that a figure from a few true loops reads as "
-        "uncertain as it is.",
-    )
-    p.add_argument("--method", default="all",
-                   help="bow, hgcn-bow, fabmap2, hgcn-fabmap, a comma list, or all (default)")
-    p.add_argument("--train", required=True, help="training sequence (image folder or dataset)")
-    p.add_argument("--test", required=True, help="test sequence (image folder or dataset)")
-    p.add_argument("--gt", default=None,
-                   help="ground-truth loop matrix of the test images (.mat, .txt, .csv, .npy); "
-                   "default TEST/loop_gt.npy")
-    p.add_argument("--train-gt", default=None,
-                   help="ground-truth loop matrix of the training images, for fitting the thresholds; "
-                   "default TRAIN/loop_gt.npy when present")
-    p.add_argument("--vocab", default=None,
-                   help="one vocabulary for every method: orb, hgcn or a file (default: ORB tree "
-                   "for bow/fabmap2, HGCN vocabulary for hgcn-*)")
-    p.add_argument("--vocab-orb", default=None,
-                   help="ORB-tree vocabulary for bow and fabmap2 (default orb10k: the ORB tree at about the HGCN's "
-                   "size, trained on the same photographs; 'orb' for the ORB-SLAM-shaped tree)")
-    p.add_argument("--vocab-hgcn", default=None, help="HGCN vocabulary file for hgcn-bow and hgcn-fabmap")
-    p.add_argument("--levels", type=int, default=None, metavar="N",
-                   help="ORB-tree vocabularies: take as words the tree's nodes N levels below the root "
-                   "(at most k^N words; the shipped tree has k=10, 5 levels) instead of its leaves")
-    p.add_argument("--features", choices=("orb", "sift"), default="orb",
-                   help="local features (sift stands in for SURF; default orb)")
-    p.add_argument("--n-features", type=int, default=1000, help="features per image (default 1000)")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--config", default=None, help="YAML file with a 'fabmap:' section (FabmapConfig)")
-    p.add_argument("--new-place", choices=("mean_field", "sampled"), default=None,
-                   help="FAB-MAP new-place likelihood (default from config: mean_field)")
-    window = p.add_mutually_exclusive_group()
-    window.add_argument("--min-gap", type=int, default=None,
-                        help="compare a query only with images at least this many images earlier, counted in "
-                        "the sampled images (one per distinct view by default; when they are made denser for "
-                        "too few revisits, the gap is scaled up by as much) (default: the ground truth's "
-                        "smallest loop separation, else --window-s 10)")
-    window.add_argument("--window-s", type=float, default=None,
-                        help="compare a query only with images at least this many seconds earlier")
-    p.add_argument("--threshold", type=float, default=None,
-                   help="FAB-MAP acceptance probability for recall/accuracy (default: fitted on the "
-                   "training sequence, else 0.99)")
-    p.add_argument("--bow-threshold", type=float, default=None,
-                   help="BoW acceptance cosine similarity for recall/accuracy (default: fitted on the "
-                   "training sequence, else 0.3)")
-    sampling = p.add_mutually_exclusive_group()
-    sampling.add_argument("--stride", type=int, default=None,
-                          help="use every stride-th image of both sequences, never made denser (default: "
-                          "sampled by camera motion or time, denser for too few revisits, see above)")
-    sampling.add_argument("--every-s", type=float, default=None,
-                          help="use one image per this many seconds of both sequences")
-    p.add_argument("--limit", type=int, default=None, help="use at most this many images of each")
-    p.set_defaults(func=_run_lcd)
+    from orbslam_hgcn.cli_lcd import add_lcd  # its many arguments live beside its handler
 
-
-def _run_lcd(args: argparse.Namespace) -> int:
-    import dataclasses
-
-    from orbslam_hgcn.config import FabmapConfig, load_yaml, section_from_yaml
-    from orbslam_hgcn.errors import ConfigError
-    from orbslam_hgcn.outputs import check_output_folder
-    from orbslam_hgcn.placerec import lcd
-
-    check_output_folder(args.out)
-    if args.n_features < 1:
-        raise ConfigError(f"--n-features must be at least 1, found {args.n_features}")
-    cfg = FabmapConfig()
-    if args.config:
-        cfg = section_from_yaml(FabmapConfig, load_yaml(args.config), args.config, "fabmap")
-    if args.new_place is not None:
-        cfg = dataclasses.replace(cfg, new_place=args.new_place)
-    if args.min_gap is not None:
-        cfg = dataclasses.replace(cfg, min_gap=args.min_gap)
-    run = lcd.lcd_command(
-        method=args.method, train=args.train, test=args.test, gt=args.gt, train_gt=args.train_gt, out=args.out,
-        features=args.features, vocab=args.vocab, vocab_orb=args.vocab_orb, vocab_hgcn=args.vocab_hgcn,
-        cfg=cfg, stride=args.stride, every_s=args.every_s, window_s=args.window_s, limit=args.limit,
-        n_features=args.n_features, levels=args.levels,
-        fabmap_threshold=args.threshold, bow_threshold=args.bow_threshold,
-    )
-    for line in run.lines:
-        print(line)
-    print(lcd.format_table(run.results))
-    for path in run.paths:
-        print(f"wrote {path}")
-    return 0
+    add_lcd(sub)
 
 
 @subcommand
@@ -398,7 +294,8 @@ def _run_synth(args: argparse.Namespace) -> int:
 
 def _add_sequence_arguments(p: argparse.ArgumentParser) -> None:
     """The dataset path and --dataset kind (run, compare)."""
-    p.add_argument("path", help="dataset folder (or video file)")
+    p.add_argument("path", help="dataset folder, video file, or (run) a live source: cam:N for camera device N, "
+                   "or a stream URL (rtsp://, http://, ...) with --config giving its camera")
     p.add_argument("--dataset", choices=("tum", "euroc", "kitti", "folder", "video"), default=None,
                    help="dataset kind (default: detected from the folder)")
 
@@ -453,22 +350,35 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--localization", action="store_true",
                    help="with --load-map: track against the map without changing it (no new keyframes)")
     _add_sequential_argument(p)
-    p.add_argument("--drop-late", action="store_true",
+    p.add_argument("--drop-late", action="store_true", default=None,
                    help="paced threaded runs: drop a frame that waits longer than threads.frame_buffer_s (0.5 s), "
-                   "as a live camera's driver does, and count it; by default every frame is processed and a slow "
-                   "run falls behind the clock (stats.json: real_time)")
+                   "as a live camera's driver does, and count it; by default every frame of a recorded sequence "
+                   "is processed and a slow run falls behind the clock (stats.json: real_time); a live source "
+                   "drops late frames unless --keep-late")
+    p.add_argument("--keep-late", action="store_true",
+                   help="a live source: process every frame it delivers, falling behind the camera if need be")
+    p.add_argument("--export-ply", default=None, metavar="FILE.ply",
+                   help="write the map's points (coloured from the images; by observation count for a live "
+                   "source) and keyframe poses (FILE_keyframes.ply) as PLY for MeshLab, Open3D, CloudCompare")
     p.set_defaults(func=_run_run)
+
+
+def _drop_late(args: argparse.Namespace) -> bool | None:
+    if args.keep_late and args.drop_late:
+        raise OrbslamError("--drop-late and --keep-late: choose one")
+    return False if args.keep_late else args.drop_late
 
 
 def _run_run(args: argparse.Namespace) -> int:
     from orbslam_hgcn.app.run import format_report, run_dataset
 
+    # A flag not given is None: the config decides (orbslam_hgcn.app.settings).
     report = run_dataset(
         args.path, args.out, kind=args.dataset, config=args.config, max_frames=args.max_frames,
-        loop_closing=not args.no_loop, progress=not args.no_progress, vocab=args.vocab, rerun=args.rerun,
-        load_map=args.load_map, save_map=args.save_map, localization=args.localization,
-        sequential=args.sequential, speed=args.speed, on_bad_frame=args.on_bad_frame,
-        drop_late=args.drop_late,
+        loop_closing=False if args.no_loop else None, progress=not args.no_progress, vocab=args.vocab,
+        rerun=args.rerun, load_map=args.load_map, save_map=args.save_map, localization=args.localization,
+        sequential=args.sequential or None, speed=args.speed, on_bad_frame=args.on_bad_frame,
+        drop_late=_drop_late(args), export_ply=args.export_ply,
     )
     for line in format_report(report):
         print(line)
@@ -493,7 +403,8 @@ def _add_vocab(sub: argparse._SubParsersAction) -> None:
                    help="word count (hgcn, kmeans: exactly, default 8000; orb: sets the depth L = round(log_k words))")
     t.add_argument("--out", required=True, help="output vocabulary file (.npz)")
     t.add_argument("--max-images", type=int, default=None, help="use at most this many images, evenly spread")
-    t.add_argument("--features", type=int, default=1000, help="ORB features per image (default 1000)")
+    t.add_argument("--n-features", "--features", dest="n_features", type=int, default=1000,
+                   help="ORB features per image (default 1000; --features is the former name)")
     t.add_argument("--levels", type=int, default=None, help="orb: tree depth L (default 6, as ORB-SLAM's ORBvoc)")
     t.add_argument("--branching", type=int, default=None, help="orb: children per node k (default 10)")
     t.add_argument("--label-fraction", type=float, default=None, help="hgcn: fraction of seeded nodes (0.1)")
@@ -545,7 +456,7 @@ def _run_vocab_train(args: argparse.Namespace) -> int:
         hgcn = dataclasses.replace(hgcn, epochs=args.epochs)
     words = args.words if (args.kind != "orb" or args.levels is None) else None
     vocab = train_from_images(
-        args.kind, args.images, args.out, words=words, max_images=args.max_images, n_features=args.features,
+        args.kind, args.images, args.out, words=words, max_images=args.max_images, n_features=args.n_features,
         tree=tree, hgcn=hgcn, trained_on=args.trained_on, tracks=not args.no_tracks, keep_cache=args.keep_cache,
         device=args.device, jobs=args.jobs, address=args.address,
     )
@@ -685,3 +596,34 @@ def _run_sweep(args: argparse.Namespace) -> int:
     if sw.interrupted:
         return _interrupted_status(sw.terminated)
     return 1 if any(not r.outcome.counts for r in sw.runs) else 0
+
+
+@subcommand
+def _add_map(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("map", help="work with a saved map (.npz): export it for other tools")
+    msub = p.add_subparsers(dest="map_command", metavar="ACTION", required=True)
+    e = msub.add_parser(
+        "export-ply",
+        help="write a saved map's points and keyframes as PLY files (MeshLab, Open3D, CloudCompare)",
+        description="Write the active map of MAP (a file of 'orbslam-hgcn run --save-map') as OUT.ply: its points "
+        "(x, y, z, colour, observations: the keyframes observing each), and OUT_keyframes.ply beside it: the "
+        "keyframes' camera centres with their optical axes as normals and their frame index. Binary little-endian "
+        "PLY 1.0, in the map's units (monocular: arbitrary scale). Points are coloured by observation count "
+        "(dark: 2, bright: 15 or more), or with --colour-from by the pixel at their keypoint in a keyframe's image.",
+    )
+    e.add_argument("map", metavar="MAP.npz", help="saved map file")
+    e.add_argument("out", metavar="OUT.ply", help="output points file; the keyframes go to OUT_keyframes.ply")
+    e.add_argument("--colour-from", default=None, metavar="DATASET_PATH",
+                   help="the dataset the map was made from: colour the points from its images")
+    e.set_defaults(func=_run_map_export_ply)
+
+
+def _run_map_export_ply(args: argparse.Namespace) -> int:
+    from orbslam_hgcn.app.export import export_ply
+
+    result = export_ply(args.map, args.out, colour_from=args.colour_from)
+    for note in result.notes:
+        print(note)
+    print(f"wrote {result.paths['points']} ({result.n_points} points)")
+    print(f"wrote {result.paths['keyframes']} ({result.n_keyframes} keyframes)")
+    return 0

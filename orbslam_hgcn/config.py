@@ -1,265 +1,49 @@
-"""Configuration: the camera YAML schema and frozen per-stage dataclasses.
+"""Configuration: the frozen per-stage dataclasses a run reads (YAML sections ``map``,
+``backend``, ``orb``, ``initializer``, ``tracking``, ``local_mapping``, ``system``,
+``loop_closing``, ``relocalization``, ``threads``; gathered by
+:class:`~orbslam_hgcn.runtime.system.Configs`), each with its defaults beside their meaning.
 
-Camera files (the shipped ones in ``orbslam_hgcn/configs/*.yaml``) use one flat schema::
-
-    name: tum_fr3            # free text
-    model: pinhole           # the only model supported
-    width: 640               # image size in pixels
-    height: 480
-    fps: 30
-    fx: 535.4                # focal lengths and principal point in pixels
-    fy: 539.2
-    cx: 320.1
-    cy: 247.6
-    distortion: [0, 0, 0, 0, 0]   # OpenCV radial-tangential k1 k2 p1 p2 [k3]
-
-The same keys may instead sit under a ``camera:`` section of a larger file. Every value is
-validated on load; an error names the file and the key. A file may also carry stage
-sections (``orb:``, ``tracking:``, ...; see :class:`~orbslam_hgcn.runtime.system.Configs`):
-each shipped camera carries the settings ORB-SLAM's example files use for it. A section
-that no stage reads is refused (:func:`check_sections`), as an unknown key is.
-
-Stage configs are frozen dataclasses defined below, each with its defaults beside their
-meaning; :func:`section_from_yaml` fills one from a YAML section and rejects unknown keys.
+The files they come from (the camera YAML schema, the shipped configs, loading a file and
+checking its sections, :func:`section_from_yaml`) are in :mod:`orbslam_hgcn.config_files`;
+the configurations of the commands beside a run (FabmapConfig, VizConfig,
+VocabularyConfig, TreeTrainConfig, HgcnTrainConfig) in :mod:`orbslam_hgcn.tool_config`.
+Both are re-exported here: ``from orbslam_hgcn.config import X`` finds every name of the
+three modules.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import difflib
-import importlib.resources
 import math
-from pathlib import Path
-from typing import Any, TypeVar
 
-import yaml
-
-from orbslam_hgcn.errors import ConfigError, where
-from orbslam_hgcn.geometry.camera import PinholeCamera
+# Re-exported: the callers import these from this module.
+from orbslam_hgcn.config_files import (  # noqa: F401
+    CONFIG_DIR,
+    KIND_FAMILIES,
+    NOT_SETTINGS,
+    OTHER_SECTIONS,
+    camera_from_dict,
+    camera_to_dict,
+    check_sections,
+    dataset_settings,
+    load_camera,
+    load_yaml,
+    resolve_config,
+    save_camera,
+    section_from_yaml,
+    shipped_configs,
+    stage_sections,
+)
+from orbslam_hgcn.errors import ConfigError
 # Defined beside the two-view solver that reads it (geometry never imports this module).
 from orbslam_hgcn.geometry.two_view import InitializerConfig  # noqa: F401
-
-# The shipped camera configs, package data (read the same from a checkout or a wheel).
-CONFIG_DIR = Path(str(importlib.resources.files("orbslam_hgcn") / "configs"))
-
-
-def resolve_config(path: str | Path) -> Path:
-    """The file of a config argument: a path as given, or the bare name of a shipped config
-    (``tum_fr3`` finds ``tum_fr3.yaml`` among the shipped configs) when no such file exists."""
-    p = Path(path)
-    if not p.is_file() and not p.suffix and (CONFIG_DIR / f"{p.name}.yaml").is_file():
-        return CONFIG_DIR / f"{p.name}.yaml"
-    return p
-
-
-def shipped_configs() -> list[str]:
-    """Names of the shipped configs."""
-    return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
-
-T = TypeVar("T")
-
-
-def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping; a missing, unreadable or non-mapping file is a ConfigError."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config file ({exc.strerror})") from None
-    # OpenCV FileStorage YAML (as ORB-SLAM ships) starts with a %YAML:1.0 directive that
-    # PyYAML rejects; drop it so such files can at least be reported on clearly.
-    if text.startswith("%YAML"):
-        text = text.split("\n", 1)[1] if "\n" in text else ""
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else None
-        raise ConfigError(f"{where(path, line)}: not valid YAML") from None
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of keys at the top level")
-    return data
-
-
-def _number(data: dict, key: str, path: Path, *, positive: bool, integer: bool = False) -> float:
-    if key not in data:
-        raise ConfigError(f"{where(path, key=key)}: missing required key")
-    val = data[key]
-    if isinstance(val, bool) or not isinstance(val, (int, float)):
-        raise ConfigError(f"{where(path, key=key)}: expected a number, found {val!r}")
-    if not math.isfinite(val):
-        raise ConfigError(f"{where(path, key=key)}: value must be finite, found {val!r}")
-    if positive and val <= 0:
-        raise ConfigError(f"{where(path, key=key)}: value must be positive, found {val!r}")
-    if integer and int(val) != val:
-        raise ConfigError(f"{where(path, key=key)}: expected a whole number, found {val!r}")
-    return int(val) if integer else float(val)
-
-
-def camera_from_dict(data: dict[str, Any], path: str | Path = "<camera>") -> PinholeCamera:
-    """Validate a camera mapping (the flat schema above) and build a PinholeCamera."""
-    path = Path(path)
-    if "camera" in data and isinstance(data["camera"], dict):
-        data = data["camera"]
-    model = data.get("model", "pinhole")
-    if model != "pinhole":
-        raise ConfigError(f"{where(path, key='model')}: unsupported camera model {model!r}; use 'pinhole'")
-    fx = _number(data, "fx", path, positive=True)
-    fy = _number(data, "fy", path, positive=True)
-    width = _number(data, "width", path, positive=True, integer=True)
-    height = _number(data, "height", path, positive=True, integer=True)
-    cx = _number(data, "cx", path, positive=False)
-    cy = _number(data, "cy", path, positive=False)
-    if not (0 <= cx <= width and 0 <= cy <= height):
-        raise ConfigError(
-            f"{where(path, key='cx/cy')}: principal point ({cx}, {cy}) lies outside the "
-            f"{width}x{height} image"
-        )
-    fps = _number(data, "fps", path, positive=True) if "fps" in data else 30.0
-    dist = data.get("distortion", [0.0] * 5)
-    if dist is None:
-        dist = [0.0] * 5
-    if (
-        not isinstance(dist, list)
-        or len(dist) not in (4, 5)
-        or not all(isinstance(d, (int, float)) and not isinstance(d, bool) and math.isfinite(d) for d in dist)
-    ):
-        raise ConfigError(
-            f"{where(path, key='distortion')}: expected a list of 4 or 5 numbers k1 k2 p1 p2 [k3], "
-            f"found {dist!r}"
-        )
-    return PinholeCamera(
-        fx=fx,
-        fy=fy,
-        cx=cx,
-        cy=cy,
-        width=int(width),
-        height=int(height),
-        dist=tuple(float(d) for d in dist),
-        fps=fps,
-        name=str(data.get("name", path.stem)),
-    )
-
-
-def load_camera(path: str | Path) -> PinholeCamera:
-    """Load and validate a camera YAML file.
-
-    ``path`` may also be the bare name of a shipped config (``tum_fr3``).
-    """
-    p = resolve_config(path)
-    return camera_from_dict(load_yaml(p), p)
-
-
-# A dataset of one of these kinds whose camera matches no shipped config takes the stage
-# settings of the first shipped config of its family (ORB-SLAM's settings for that dataset).
-KIND_FAMILIES = {"kitti": "kitti_", "tum": "tum_", "euroc": "euroc_"}
-
-
-def _same_camera(a: PinholeCamera, b: PinholeCamera, tol_px: float = 0.5) -> bool:
-    return (a.width, a.height) == (b.width, b.height) and all(
-        abs(x - y) <= tol_px for x, y in ((a.fx, b.fx), (a.fy, b.fy), (a.cx, b.cx), (a.cy, b.cy))
-    )
-
-
-def stage_sections(data: dict[str, Any]) -> dict[str, Any]:
-    """The stage sections (every mapping but ``camera``) of a config file's contents."""
-    return {k: v for k, v in data.items() if isinstance(v, dict) and k != "camera"}
-
-
-def dataset_settings(camera: PinholeCamera, kind: str | None = None) -> tuple[Path | None, dict[str, Any]]:
-    """The stage settings a run on a dataset with ``camera`` starts from (before --config).
-
-    The shipped config whose camera is ``camera`` (same size, focal lengths and principal
-    point within 0.5 px); otherwise, for a dataset ``kind`` with a family of shipped
-    configs (KITTI, TUM, EuRoC), the first of that family; otherwise none. Returns (the
-    config's path or None, its stage sections)."""
-    names = shipped_configs()
-    for name in names:
-        path = CONFIG_DIR / f"{name}.yaml"
-        data = load_yaml(path)
-        if _same_camera(camera_from_dict(data, path), camera):
-            return path, stage_sections(data)
-    prefix = KIND_FAMILIES.get((kind or "").lower())
-    family = [n for n in names if prefix and n.startswith(prefix)]
-    if family:
-        path = CONFIG_DIR / f"{family[0]}.yaml"
-        return path, stage_sections(load_yaml(path))
-    return None, {}
-
-
-def camera_to_dict(cam: PinholeCamera) -> dict[str, Any]:
-    """The flat YAML mapping of a camera (inverse of :func:`camera_from_dict`)."""
-    return {
-        "name": cam.name,
-        "model": "pinhole",
-        "width": cam.width,
-        "height": cam.height,
-        "fps": cam.fps,
-        "fx": cam.fx,
-        "fy": cam.fy,
-        "cx": cam.cx,
-        "cy": cam.cy,
-        "distortion": [float(d) for d in cam.dist_coeffs],
-    }
-
-
-def save_camera(path: str | Path, cam: PinholeCamera) -> None:
-    Path(path).write_text(yaml.safe_dump(camera_to_dict(cam), sort_keys=False), encoding="utf-8")
-
-
-# Sections a run's config file may hold besides the stages' (runtime.system.Configs): the
-# camera, the live viewer's (viz), and those of the commands that may share a file with it
-# (lcd's fabmap, vocab train's hgcn and vocab_tree).
-OTHER_SECTIONS = ("camera", "viz", "fabmap", "hgcn", "vocab_tree")
-# What to say, instead of a close match, of sections people write that are no settings.
-NOT_SETTINGS = {"vocabulary": "the vocabulary is no config setting: choose it with --vocab NAME|FILE"}
-
-
-def check_sections(data: dict[str, Any] | None, path: str | Path, stages: list[str]) -> None:
-    """Raise ConfigError, naming the file, for a section (a mapping at the top of a config
-    file) that neither a stage (``stages``, the section names) nor :data:`OTHER_SECTIONS`
-    reads: a misspelt ``orbb:`` would otherwise be ignored without a word."""
-    known = list(stages) + list(OTHER_SECTIONS)
-    for key, value in (data or {}).items():
-        if isinstance(value, dict) and key not in known:
-            close = difflib.get_close_matches(str(key), known, n=1)
-            hint = f"{NOT_SETTINGS[key]}; " if key in NOT_SETTINGS else f"did you mean {close[0]!r}? " if close else ""
-            raise ConfigError(f"{where(path, key=str(key))}: unknown section; {hint}known sections: {', '.join(known)}")
-
-
-def section_from_yaml(cls: type[T], data: dict[str, Any] | None, path: str | Path, section: str) -> T:
-    """Build the frozen dataclass ``cls`` from ``data[section]``, defaults for absent keys.
-
-    Unknown keys, and values whose type does not match the default's, are ConfigErrors.
-    """
-    if not dataclasses.is_dataclass(cls):
-        raise TypeError(f"{cls!r} is not a dataclass")
-    values = (data or {}).get(section) or {}
-    if not isinstance(values, dict):
-        raise ConfigError(f"{where(path, key=section)}: expected a mapping")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    kwargs: dict[str, Any] = {}
-    for key, val in values.items():
-        if key not in fields:
-            raise ConfigError(
-                f"{where(path, key=f'{section}.{key}')}: unknown key; known keys: {', '.join(sorted(fields))}"
-            )
-        default = fields[key].default
-        if default is not dataclasses.MISSING and default is not None:
-            if isinstance(default, bool) != isinstance(val, bool) or (
-                isinstance(default, (int, float)) and not isinstance(val, (int, float))
-            ) or (isinstance(default, str) and not isinstance(val, str)):
-                raise ConfigError(
-                    f"{where(path, key=f'{section}.{key}')}: expected {type(default).__name__}, found {val!r}"
-                )
-            if isinstance(default, float) and isinstance(val, int):
-                val = float(val)
-        kwargs[key] = val
-    return cls(**kwargs)
+from orbslam_hgcn.tool_config import (  # noqa: F401
+    FabmapConfig,
+    HgcnTrainConfig,
+    TreeTrainConfig,
+    VizConfig,
+    VocabularyConfig,
+)
 
 
 # --- Stage configurations -------------------------------------------------------------
@@ -342,158 +126,6 @@ class ORBConfig:
     # extraction about 15% faster on an idle 2-core machine, but the threaded system keeps
     # both cores busy, and there one thread per extraction gave as many or more frames/s.
     threads: int = 1
-
-
-@dataclasses.dataclass(frozen=True)
-class FabmapConfig:
-    """Appearance-based loop-closure detection (FAB-MAP 2.0, Cummins & Newman, IJRR 2011; the
-    BoW detectors share ``min_gap``). Detector model, smoothing, new-place prior, motion bias
-    and sample count are openFABMAP's defaults (Glover et al., ICRA 2012: samples/settings.yml
-    PzGe 0.39, PzGne 0, NumSamples 1000; FabMap constructor Pnew 0.9, mBias 0.5; ChowLiuTree
-    smoothing 0.98 f + 0.01); prior_spread 0.01 stands for its 1% posterior smoothing (sFactor 0.99)."""
-
-    p_z_given_e: float = 0.39  # detector model p(z = 1 | e = 1): a present element is seen
-    p_z_given_not_e: float = 0.0  # p(z = 1 | e = 0): an absent element is seen (false word)
-    smoothing: float = 0.01  # Chow-Liu probabilities (1 - 2 s) * frequency + s, never 0 or 1
-    new_place: str = "mean_field"  # new-place likelihood: "mean_field" or "sampled" (training)
-    num_samples: int = 1000  # training images drawn for the "sampled" new-place model
-    p_new: float = 0.9  # prior probability that a query shows a place not yet visited
-    motion_model: bool = True  # prior favours the previous match's neighbours (else uniform)
-    motion_bias: float = 0.5  # share of neighbour mass moved forward (1: all forward)
-    prior_spread: float = 0.01  # share of the known-place prior always spread uniformly
-    # A query is compared with images at least this many images earlier; 0: chosen from the
-    # data (lcd: the ground truth's smallest loop separation, else 10 s of timestamps).
-    min_gap: int = 0
-    seed: int = 0  # seed of the training-image sample
-
-
-@dataclasses.dataclass(frozen=True)
-class VizConfig:
-    """Rerun visualisation (``orbslam_hgcn.viz``): what is logged and how often."""
-
-    # Frames between two map logs; the map is also logged on every loop closure (the
-    # corrected map replaces the old one) and, with map_on_keyframe, on a keyframe insert
-    # at least map_min_interval frames after the previous map log. A map log costs about
-    # 2.7 ms at 10k points / 200 keyframes, a frame about 2 ms (bench/bench_viz.py): with
-    # these defaults logging stays under 10% of a 30 fps frame budget.
-    log_every_map: int = 20
-    map_on_keyframe: bool = True
-    map_min_interval: int = 10
-    # Map point colour: "observations" (observing keyframes, viridis up to obs_colour_max),
-    # "height" (above the first camera, i.e. along world -y), or "none".
-    point_colour: str = "observations"
-    obs_colour_max: int = 15
-    # Camera image: "jpeg" (about 10x smaller files), "raw" (lossless) or "none";
-    # logged every image_every frames (keypoints, pose and plots are logged every frame).
-    image_format: str = "jpeg"
-    jpeg_quality: int = 80
-    image_every: int = 1
-    # Distance of the drawn image plane of keyframe frustums, in world (map) units.
-    frustum_depth: float = 0.1
-
-    def __post_init__(self) -> None:
-        choices = {"point_colour": ("observations", "height", "none"),
-                   "image_format": ("jpeg", "raw", "none")}
-        for key, allowed in choices.items():
-            if getattr(self, key) not in allowed:
-                raise ConfigError(
-                    f"viz.{key}: {getattr(self, key)!r} is not one of {', '.join(allowed)}"
-                )
-        for key in ("log_every_map", "map_min_interval", "image_every", "obs_colour_max"):
-            if int(getattr(self, key)) < 1:
-                raise ConfigError(f"viz.{key}: must be at least 1, found {getattr(self, key)!r}")
-        if not 1 <= self.jpeg_quality <= 100:
-            raise ConfigError(f"viz.jpeg_quality: must be in 1..100, found {self.jpeg_quality!r}")
-        if not self.frustum_depth > 0:
-            raise ConfigError(f"viz.frustum_depth: must be positive, found {self.frustum_depth!r}")
-
-
-@dataclasses.dataclass(frozen=True)
-class VocabularyConfig:
-    """Visual vocabulary and keyframe database at run time (ORB-SLAM, Mur-Artal et al., T-RO
-    2015, sections III-E and VI: DBoW2 vectors, FeatureVector 4 levels above the words, loop
-    candidates sharing > 0.8 x the most common words, kept above 0.75 x the best group score)."""
-
-    kind: str = "kmeans"  # "kmeans" (flat k-means, the default run vocabulary), "hgcn" (the paper's) or "orb" (DBoW2 tree)
-    path: str = ""  # vocabulary file; "" = the shipped default of `kind`
-    levels_up: int = 4  # FeatureVector nodes this many levels above the words (HGCN: coarse nodes)
-    min_common_words_ratio: float = 0.8  # candidates share more than this x the most common words
-    retain_score_ratio: float = 0.75  # keep groups scoring above this x the best group score
-    n_covisible: int = 10  # best covisible keyframes whose scores form a candidate's group
-
-    def __post_init__(self) -> None:
-        if self.kind not in ("hgcn", "orb", "kmeans"):
-            raise ConfigError(f"vocabulary.kind: must be 'hgcn', 'orb' or 'kmeans', found {self.kind!r}")
-        if self.levels_up < 0:
-            raise ConfigError(f"vocabulary.levels_up: must be >= 0, found {self.levels_up!r}")
-        for key in ("min_common_words_ratio", "retain_score_ratio"):
-            if not 0.0 <= getattr(self, key) <= 1.0:
-                raise ConfigError(f"vocabulary.{key}: must be in [0, 1], found {getattr(self, key)!r}")
-
-
-@dataclasses.dataclass(frozen=True)
-class TreeTrainConfig:
-    """Training of the DBoW2 vocabulary tree (Galvez-Lopez & Tardos, T-RO 2012; ORB-SLAM's
-    ORBvoc uses k = 10, L = 6)."""
-
-    k: int = 10  # children per node
-    levels: int = 6  # depth L: up to k^L words (ORBvoc: 6)
-    max_iters: int = 10  # Lloyd iterations of k-medians per level
-    seed: int = 0  # k-means++ seeding
-
-    def __post_init__(self) -> None:
-        if self.k < 2 or self.levels < 1 or self.max_iters < 1:
-            raise ConfigError(f"vocab_tree: k >= 2, levels >= 1 and max_iters >= 1 are required, found k = {self.k}, "
-                              f"levels = {self.levels}, max_iters = {self.max_iters}")
-
-
-@dataclasses.dataclass(frozen=True)
-class HgcnTrainConfig:
-    """Training of the HGCN vocabulary ("Semi-supervised Vector-Quantization in Visual SLAM
-    using HGCN": 20-D PCA of the 256 ORB bits, 9-NN graph, 2-layer HGCN of Chami et al.,
-    NeurIPS 2019, labels seeded on a fraction of the nodes by k-means). The k-means
-    vocabulary (the ablation without the graph and the network) uses the same PCA, seed
-    k-means, word count, coarse nodes and search settings."""
-
-    n_words: int = 8000  # K: words = seed clusters = output classes
-    pca_dim: int = 20  # PCA dimensions of the descriptor features
-    knn: int = 9  # neighbours per node before symmetrisation
-    knn_exact_max: int = 60000  # exact kNN (faiss flat) up to this many nodes, IVF above
-    knn_nprobe: int = 16  # IVF lists probed by the approximate kNN search
-    label_fraction: float = 0.1  # fraction of nodes given a seed label
-    kmeans_iters: int = 20  # faiss k-means iterations of the label seeding
-    kmeans_points_per_word: int = 64  # k-means trains on at most this many points per word
-    hidden_dim: int = 20  # width of both HGCN layers (with 20 the run-time prototype search stays in faiss's fused kernel)
-    activation: str = "tanh"  # tangent-space activation: relu, leaky_relu, elu, tanh
-    residual: bool = True  # layers add their aggregate to an identity-initialised self path
-    dropout: float = 0.0  # dropout on the layer weights (as HGCN's HypLinear)
-    input_radius: float = 0.5  # mean tangent norm of the input features on the first ball
-    epochs: int = 60  # full-batch epochs at most (early stopping usually ends sooner)
-    eval_every: int = 2  # epochs between two validation passes
-    patience: int = 5  # validation passes without improvement before training stops
-    holdout: float = 0.1  # share of the seed groups held out for validation, and again for test
-    candidate_classes: int = 16  # hard negatives per seed in the loss: the nearest prototypes
-    lr: float = 5e-4  # Adam learning rate of the layers
-    scale_lr: float = 0.01  # Adam learning rate of the logit scale
-    weight_decay: float = 0.0  # Adam weight decay
-    init_curvature: float = 1.0  # initial c of every ball (trainable, c = softplus(raw))
-    n_coarse: int = 100  # coarse nodes (k-means of the word centres) for the FeatureVector
-    nprobe: int = 4  # inverted lists probed at run time (IVF over the words; above 16384 words only)
-    seed: int = 0  # sampling, initialisation and k-means seeds
-
-    def __post_init__(self) -> None:
-        if self.n_words < 2 or self.pca_dim < 1 or self.knn < 1 or self.hidden_dim < 1 or self.epochs < 1:
-            raise ConfigError("hgcn: n_words >= 2, pca_dim >= 1, knn >= 1, hidden_dim >= 1 and epochs >= 1 are "
-                              f"required, found {self.n_words}, {self.pca_dim}, {self.knn}, {self.hidden_dim}, "
-                              f"{self.epochs}")
-        if not 0.0 < self.label_fraction <= 1.0:
-            raise ConfigError(f"hgcn.label_fraction: must be in (0, 1], found {self.label_fraction!r}")
-        if self.activation not in ("relu", "leaky_relu", "elu", "tanh"):
-            raise ConfigError(f"hgcn.activation: unknown activation {self.activation!r}")
-        if not 0.0 <= self.holdout < 0.5:
-            raise ConfigError(f"hgcn.holdout: must be in [0, 0.5), found {self.holdout!r}")
-        if self.epochs < 0 or self.eval_every < 1 or self.candidate_classes < 1:
-            raise ConfigError("hgcn: epochs >= 0, eval_every >= 1 and candidate_classes >= 1 are required")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -760,9 +392,10 @@ class ThreadsConfig:
     thread, or local mapping and loop closing in worker threads as ORB-SLAM does."""
 
     # True: tracking, local mapping and loop closing in order, one frame at a time; results
-    # are identical on every run. False: local mapping and loop closing in worker threads.
-    # (``orbslam-hgcn run`` sets it from its --sequential flag: threaded by default.)
-    sequential: bool = True
+    # are identical on every run. False (the default of run, the API and ORB-SLAM): local
+    # mapping and loop closing in worker threads. ``run --sequential`` and
+    # ``Slam(sequential=True)`` set it.
+    sequential: bool = False
     # Threaded only: solve the BAs that run in gtsam (global BA, the essential graph, local
     # BA with backend.local_ba_solver "gtsam") in child processes. gtsam keeps the GIL while
     # it iterates, so a BA solved in a thread of this process stalls tracking.

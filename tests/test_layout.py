@@ -254,3 +254,14 @@ def test_every_bench_prints_its_help(script):
                          text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.startswith("usage:")
+
+
+MAX_MODULE_LINES = 700
+
+
+def test_no_module_is_longer_than_a_reader_can_hold():
+    # A module a reader can hold: past this the file is split by concern (runtime/system.py
+    # into feed, handover, map_switch and report; config.py into config_files and tool_config).
+    long = {str(p.relative_to(ROOT)): n for p in PACKAGE.rglob("*.py")
+            if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES}
+    assert long == {}

@@ -345,7 +345,7 @@ def test_system_closes_a_small_synthetic_loop(tmp_path_factory):
     # tracker can re-find the first turn's points by itself, leaving no loop to detect.
     opts = SynthOptions(trajectory="replay", gt=str(gt), noise=2.0, exposure_drift=0.1)
     seq = open_sequence("tum", render_sequence(work / "seq", opts, progress=False))
-    system = System(seq.camera, vocabulary=load_vocabulary("hgcn"))
+    system = System(seq.camera, vocabulary=load_vocabulary("hgcn"), sequential=True)
     ate: list[tuple[float, float]] = []
     process = system.loop_closer.process
 

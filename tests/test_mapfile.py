@@ -13,7 +13,7 @@ from orbslam_hgcn.datasets import open_sequence
 from orbslam_hgcn.errors import VocabularyError
 from orbslam_hgcn.map import check_invariants
 from orbslam_hgcn.map.io import MapFileError, read_map
-from orbslam_hgcn.app.mapfile import install_map, load_map, save_system_map
+from orbslam_hgcn.app.mapfile import load_map, save_system_map
 from orbslam_hgcn.runtime.system import System
 from orbslam_hgcn.trajectory import Trajectory
 from orbslam_hgcn.vocabulary import load_vocabulary
@@ -26,7 +26,7 @@ def mapped(synth_replay_100, tmp_path_factory):
     """(sequence, vocabulary, mapping System, saved map file) of a real short run."""
     seq = open_sequence("tum", synth_replay_100)
     vocab = load_vocabulary("hgcn")
-    system = System(seq.camera, vocabulary=vocab)
+    system = System(seq.camera, vocabulary=vocab, sequential=True)
     system.run(seq, MAP_FRAMES, progress=False)
     assert system.map.n_keyframes() >= 4, "the mapping run must build a map to save"
     path = save_system_map(tmp_path_factory.mktemp("map") / "map.npz", system, "hgcn")
@@ -137,8 +137,8 @@ def test_localization_against_loaded_map(mapped):
     kf_err = np.linalg.norm(c * mapping.keyframe_trajectory().positions @ R.T + t - gt.positions[idx], axis=1)
     m = load_map(path, vocab).map
     before = _map_state(m)
-    system = System(seq.camera, vocabulary=vocab)
-    install_map(system, m, localization=True)
+    system = System(seq.camera, vocabulary=vocab, sequential=True)
+    system.install_map(m, localization=True)
     frames = range(30, 80)  # half inside the mapped stretch, half beyond it
     results = [system.process(seq[i].image, seq[i].timestamp, seq[i].index) for i in frames]
     stats = system.stats()
@@ -197,8 +197,8 @@ def test_mapping_continues_on_a_loaded_map(mapped):
     seq, vocab, mapping, path = mapped
     m = load_map(path, vocab).map
     n0 = m.n_keyframes()
-    system = System(seq.camera, vocabulary=vocab)
-    install_map(system, m, localization=False)
+    system = System(seq.camera, vocabulary=vocab, sequential=True)
+    system.install_map(m, localization=False)
     for i in range(60, 80):  # beyond the saved map: the tracker relocalises, then extends it
         system.process(seq[i].image, seq[i].timestamp, seq[i].index)
     system.close()

@@ -237,7 +237,7 @@ def test_fusion_merges_duplicated_points(monkeypatch):
 def synth_run(synth_replay_100):
     """The system run over the first 45 frames of the replayed fr3 camera path."""
     seq = open_sequence("tum", synth_replay_100)
-    system = System(seq.camera)
+    system = System(seq.camera, sequential=True)
     system.run(seq, 45, progress=False)
     return system
 

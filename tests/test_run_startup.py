@@ -44,8 +44,7 @@ def _settings_logged(folder: Path, out: Path, caplog, monkeypatch, config: str |
     def stop(*a, **k):
         raise _Stop()
 
-    monkeypatch.setattr(run_mod, "open_vocabulary", lambda *a, **k: None)
-    monkeypatch.setattr(run_mod, "System", stop)
+    monkeypatch.setattr(run_mod, "Slam", stop)
     caplog.set_level(logging.INFO, logger="orbslam_hgcn")
     with pytest.raises(_Stop):
         run_mod.run_dataset(folder, out, config=config, progress=False)

@@ -32,7 +32,7 @@ def synth_path(synth_replay_100) -> Path:
 @pytest.fixture(scope="module")
 def run80(synth_path):
     seq = open_sequence("tum", synth_path)
-    system = System(seq.camera)
+    system = System(seq.camera, sequential=True)
     summary = system.run(seq, 80, progress=False)
     return seq, system, summary
 
@@ -115,7 +115,7 @@ def test_lost_tracking_is_counted_and_results_written(synth_path, tmp_path, capl
     seq = _Spliced(open_sequence("tum", synth_path), 34, 27, "blank")
     # reset_max_keyframes=0: the young map is kept (lost, not discarded), so the frames
     # tracked before stay in the results (the reset path is tested in test_tracking).
-    system = System(seq.camera, Configs(tracking=TrackingConfig(reset_max_keyframes=0)))
+    system = System(seq.camera, Configs(tracking=TrackingConfig(reset_max_keyframes=0)), sequential=True)
     with caplog.at_level("WARNING"):
         summary = system.run(seq, progress=False)
     assert summary.frames == 34
@@ -135,7 +135,7 @@ def test_lost_tracking_is_counted_and_results_written(synth_path, tmp_path, capl
 
 def test_ctrl_c_keeps_what_exists(synth_path, tmp_path):
     seq = _Spliced(open_sequence("tum", synth_path), 100, 26, "interrupt")
-    system = System(seq.camera)
+    system = System(seq.camera, sequential=True)
     summary = system.run(seq, progress=False)
     assert summary.interrupted and summary.frames == 26
     paths = system.save(tmp_path)

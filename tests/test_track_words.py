@@ -13,7 +13,7 @@ from orbslam_hgcn.config import LocalMappingConfig
 from orbslam_hgcn.errors import ConfigError
 from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.datasets import open_sequence
-from orbslam_hgcn.app.mapfile import install_map, load_map, save_system_map
+from orbslam_hgcn.app.mapfile import load_map, save_system_map
 from orbslam_hgcn.app.run import trajectory_ate
 from orbslam_hgcn.runtime.system import Configs, System
 from orbslam_hgcn.vocabulary import load_vocabulary
@@ -100,7 +100,7 @@ def track_mapped(request, synth_replay_100, tmp_path_factory):
     seq = open_sequence("tum", synth_replay_100)
     vocab = load_vocabulary(name)
     configs = Configs(local_mapping=dataclasses.replace(LocalMappingConfig(), track_words=True, track_words_by=by))
-    system = System(seq.camera, configs, vocabulary=vocab)
+    system = System(seq.camera, configs, vocabulary=vocab, sequential=True)
     system.run(seq, 60, progress=False)
     path = save_system_map(tmp_path_factory.mktemp("map") / "map.npz", system, "hgcn")
     return seq, vocab, system, path
@@ -115,8 +115,8 @@ def test_lone_frame_relocalises_against_track_words(track_mapped):
     assert sum(differ) >= len(kfs) - 1  # the first keyframe has no earlier track mates
     assert mapping.mapper.timings["track_words"]
     m = load_map(path, vocab).map
-    system = System(seq.camera, vocabulary=vocab)
-    install_map(system, m, localization=True)
+    system = System(seq.camera, vocabulary=vocab, sequential=True)
+    system.install_map(m, localization=True)
     for i in range(30, 40):
         system.process(seq[i].image, seq[i].timestamp, seq[i].index)
     stats = system.stats()
@@ -169,4 +169,4 @@ def test_track_network_words_need_a_vocabulary_with_a_network():
         LocalMappingConfig(track_words_by="median")
     configs = Configs(local_mapping=LocalMappingConfig(track_words=True, track_words_by="network"))
     with pytest.raises(ConfigError, match="hgcn_graph"):
-        System(PinholeCamera(500, 500, 320, 240, 640, 480), configs, vocabulary=load_vocabulary("kmeans"))
+        System(PinholeCamera(500, 500, 320, 240, 640, 480), configs, vocabulary=load_vocabulary("kmeans"), sequential=True)

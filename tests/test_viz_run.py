@@ -15,7 +15,7 @@ import rerun as rr
 from rerun.chunk import RrdReader
 
 from orbslam_hgcn import cli
-from orbslam_hgcn.app import run as run_module
+from orbslam_hgcn.app import slam as slam_module
 from orbslam_hgcn.runtime.system import System
 from orbslam_hgcn.trajectory import read_tum
 from orbslam_hgcn.viz import records as ent
@@ -70,7 +70,7 @@ def slam_run(synth_replay_100, tmp_path_factory, monkeypatch_module):
             self.observers.append(recorder)
             made.append(self)
 
-    monkeypatch_module.setattr(run_module, "System", RecordedSystem)
+    monkeypatch_module.setattr(slam_module, "System", RecordedSystem)  # run builds its System through Slam
     # Sequential: the same run every time (in threaded mode how far the tracked poses are
     # from the refined ones in the trajectory file depends on when local BA lands).
     code = cli.main(["run", str(synth_replay_100), "--out", str(out), "--no-loop", "--vocab", "none",

@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work-dir", type=Path, default=Path.home() / ".cache" / "orbslam_hgcn" / "vocab_training")
     ap.add_argument("--photos", type=Path, default=photos.default_photo_folder(),
                     help="folder of real photos named <source>_<NNNN>.jpg (default: shared/data/real_photos)")
-    ap.add_argument("--features", type=int, default=1000, help="ORB features per image")
+    ap.add_argument("--n-features", "--features", dest="n_features", type=int, default=1000, help="ORB features per image")
     ap.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS))
     ap.add_argument("--hgcn-words", type=int, default=HgcnTrainConfig.n_words, help="hgcn and kmeans words")
     ap.add_argument("--orb-levels", type=int, default=ORB_LEVELS)
@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     args.work_dir.mkdir(parents=True, exist_ok=True)
     if not args.photos.is_dir():
         ap.error(f"--photos {args.photos}: no such folder")
-    data, trained_on, tag = training_data(args.work_dir, args.photos, args.features, args.with_renders)
+    data, trained_on, tag = training_data(args.work_dir, args.photos, args.n_features, args.with_renders)
     log.info("%d descriptors from %d images", len(data.desc), len(data.groups))
     for kind in [k for k in KINDS if k in args.kinds]:
         if kind in ("hgcn_graph", "hgcn_graph_mean"):
@@ -131,8 +131,8 @@ def main(argv: list[str] | None = None) -> int:
 
             out = SHIPPED[kind] if args.out_dir is None else args.out_dir / SHIPPED[kind].name
             words = SHIPPED["kmeans"] if args.out_dir is None else args.out_dir / SHIPPED["kmeans"].name
-            graph_args = ["--work-dir", str(args.work_dir), "--photos", str(args.photos), "--features",
-                          str(args.features), "--words", str(words), "--out", str(out),
+            graph_args = ["--work-dir", str(args.work_dir), "--photos", str(args.photos), "--n-features",
+                          str(args.n_features), "--words", str(words), "--out", str(out),
                           "--aggregation", "attention" if kind == "hgcn_graph" else "mean"]
             if train_graph_vocab.main(graph_args) != 0:
                 return 1
@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
             vocab = train_vocabulary("hgcn", data.desc, data.image_ids,
                                      hgcn=dataclasses.replace(HgcnTrainConfig(), n_words=args.hgcn_words),
                                      track_ids=track_ids, trained_on=trained_on)
-        vocab.metadata.params["n_features"] = args.features
+        vocab.metadata.params["n_features"] = args.n_features
         if kind in ARMS:
             vocab.metadata.params["arm"] = ARMS[kind]
         if kind in ROLES:

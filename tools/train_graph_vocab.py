@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work-dir", type=Path, default=Path.home() / ".cache" / "orbslam_hgcn" / "vocab_training")
     ap.add_argument("--photos", type=Path, default=photos.default_photo_folder(),
                     help="folder of real photos named <source>_<NNNN>.jpg (default: shared/data/real_photos)")
-    ap.add_argument("--features", type=int, default=1000)
+    ap.add_argument("--n-features", "--features", dest="n_features", type=int, default=1000)
     ap.add_argument("--words", default="kmeans", help="the vocabulary whose PCA and words are used (default kmeans)")
     ap.add_argument("--aggregation", choices=("attention", "mean"), default="attention")
     ap.add_argument("--window", type=int, default=TrackNetConfig.window)
@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     if not args.photos.is_dir():
         ap.error(f"--photos {args.photos}: no such folder")
-    data, photos_line, tag = training_data(args.work_dir, args.photos, args.features)
+    data, photos_line, tag = training_data(args.work_dir, args.photos, args.n_features)
     track_ids = training_tracks(args.work_dir, data, tag)
     words = load_vocabulary(args.words)
     if not hasattr(words, "centroids"):
@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         params={"arm": "C-att" if args.aggregation == "attention" else "C",
                 "words": f"k-means centroids of {args.words!r} (a lone descriptor keeps its k-means word)",
                 "decoder": "nearest k-means centroid of log_0 of the network output",
-                **dataclasses.asdict(cfg), "n_features": args.features,
+                **dataclasses.asdict(cfg), "n_features": args.n_features,
                 "weighting": "tf-idf", "scoring": "L1"},
         stats={**stats, "tracked_descriptors": int((track_ids >= 0).sum()),
                "total_seconds": round(time.perf_counter() - t0, 1)},

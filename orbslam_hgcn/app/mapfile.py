@@ -1,5 +1,6 @@
 """Saved maps in a running system: write a System's map with its vocabulary reference, read
-one back under the same vocabulary, and install it into a System for localisation.
+one back under the same vocabulary (``System.install_map`` then installs it, for
+localisation or to extend it).
 
 The file itself is :mod:`orbslam_hgcn.map.io`. Keyframe BoW vectors are only meaningful
 under the vocabulary that computed them, so the file records that vocabulary (kind, the
@@ -15,22 +16,16 @@ it. Only the points' found/visible counters change, as in ORB-SLAM2.
 from __future__ import annotations
 
 import hashlib
-import logging
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from orbslam_hgcn.config import camera_to_dict
 from orbslam_hgcn.errors import VocabularyError
 from orbslam_hgcn.map import Map
 from orbslam_hgcn.map.io import MapFile, MapFileError, read_header, read_map, save_map
-from orbslam_hgcn.tracking.tracker import TrackingState
 from orbslam_hgcn.vocabulary.loading import SHIPPED
 from orbslam_hgcn.vocabulary.bow import BowVector, FeatureVector
-
-log = logging.getLogger(__name__)
-
 
 def vocabulary_reference(vocabulary: Any, name: str | None = None) -> dict[str, Any]:
     """What identifies a vocabulary in a map file: kind, name (``orb``, ``hgcn``, ... for the
@@ -95,39 +90,3 @@ def save_system_map(path: str | Path, system: Any, vocab_name: str | None = None
     if system.vocabulary is not None:
         meta["vocabulary"] = vocabulary_reference(system.vocabulary, vocab_name)
     return save_map(path, system.atlas, meta)
-
-
-def install_map(system: Any, m: Map, localization: bool = True) -> None:
-    """Make ``m`` (and its atlas, when it has one) the map of ``system`` (before its first
-    frame).
-
-    Replaces the system's atlas and the tracker's map (a new tracker generation, state LOST
-    so the next frame is relocalised, against any map of the atlas), hands it to the other
-    stages (:meth:`System.use_map`), and rebuilds the keyframe database from every
-    keyframe's BoW vector. ``localization``: the tracker then never makes keyframes, starts
-    a map nor resets one.
-    """
-    if system.database is None or system.relocalizer is None:
-        raise VocabularyError("tracking against a saved map needs a vocabulary (relocalisation)")
-    atlas = m.atlas
-    every = [kf for mm in atlas.maps.values() for kf in mm.keyframes()] if atlas is not None else m.keyframes()
-    missing = [kf.id for kf in every if kf.bow is None]
-    if missing:
-        raise MapFileError(f"keyframes {missing[:5]} of the loaded map have no BoW vector; cannot relocalise")
-    kf_camera = m.keyframes()[0].camera
-    if (kf_camera.width, kf_camera.height) != (system.camera.width, system.camera.height):
-        raise MapFileError(f"the map's camera is {kf_camera.width}x{kf_camera.height}, the sequence's "
-                           f"{system.camera.width}x{system.camera.height}")
-    if camera_to_dict(kf_camera) != camera_to_dict(system.camera):
-        log.warning("the map's camera %s differs from the sequence's %s", kf_camera, system.camera)
-    if atlas is not None:
-        system.install_atlas(atlas, m)
-    system.tracker.reset(m)
-    system.tracker.state = TrackingState.LOST
-    system.tracker.localization = bool(localization)
-    system.use_map(m)
-    system.database.clear()
-    for kf in every:
-        system.database.add(kf.id, kf.bow)
-    log.info("installed a map of %d keyframes and %d points%s", m.n_keyframes(), m.n_points(),
-             " (localisation only)" if localization else "")

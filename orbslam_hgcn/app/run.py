@@ -14,34 +14,37 @@ and why (``"end"``), and the command exits with the status of that ending
 
 from __future__ import annotations
 
-import dataclasses
 import logging
+import math
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from orbslam_hgcn.config import VocabularyConfig, dataset_settings, load_camera, load_yaml, resolve_config
-from orbslam_hgcn.datasets import detect_kind, open_sequence
-from orbslam_hgcn.errors import FrameError, OrbslamError, StageError, VocabularyError
-from orbslam_hgcn.geometry.camera import PinholeCamera
 from orbslam_hgcn.app.ending import RunEnd
+from orbslam_hgcn.app.settings import (  # noqa: F401 - camera_from_config: a name the benches use
+    camera_from_config,
+    check_user_config,
+    config_camera,
+    flag_layer,
+    resolve_settings,
+    user_config,
+)
+from orbslam_hgcn.app.slam import DEFAULT_VOCAB, Slam, open_vocabulary  # noqa: F401 - names of this module
+from orbslam_hgcn.datasets import detect_kind, open_sequence
+from orbslam_hgcn.datasets.live import is_live
+from orbslam_hgcn.errors import FrameError, OrbslamError, StageError, Terminated
+from orbslam_hgcn.geometry.camera import PinholeCamera
+from orbslam_hgcn.map.ply import check_ply_path
 from orbslam_hgcn.outputs import check_output_file, check_output_folder
-from orbslam_hgcn.runtime.system import TERMINATED, Configs, System
+from orbslam_hgcn.runtime.system import INTERRUPTED, TERMINATED
 from orbslam_hgcn.trajectory import Trajectory
 from orbslam_hgcn.viz.sinks import parse_rerun_arg
 
 log = logging.getLogger(__name__)
 
-# The vocabulary of a run without --vocab: the arm that won the place-recognition ablation
-# (bench/bench_track_words.py; README "Shipped vocabularies"): k-means words of lone
-# descriptors. Neither the shipped HGCN (its network is in effect the identity) nor the
-# track network over map points beat it there. The vocabulary config's default kind.
-DEFAULT_VOCAB = VocabularyConfig.kind
-
-CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 
 def _first_line(exc: BaseException) -> str:
     lines = str(exc).strip().splitlines()
@@ -68,17 +71,6 @@ class RunReport:
         return self.end.exit_status
 
 
-def camera_from_config(path: str | Path | None) -> PinholeCamera | None:
-    """The camera of a config file when it holds one (flat keys or a ``camera:`` section)."""
-    if path is None:
-        return None
-    data = load_yaml(path)
-    section = data.get("camera") if isinstance(data.get("camera"), dict) else data
-    if any(k in section for k in CAMERA_KEYS):
-        return load_camera(path)
-    return None
-
-
 def camera_source(path: str | Path, kind: str, config: str | Path | None) -> str:
     """Where the camera of a run comes from: ``config`` (--config, when it holds a camera),
     else the dataset's own calibration (a TUM folder's ``camera.yaml``, else its folder
@@ -99,31 +91,6 @@ def camera_source(path: str | Path, kind: str, config: str | Path | None) -> str
     if kind == "euroc":
         return "the dataset's sensor.yaml"
     return "the dataset"
-
-
-def settings_source(camera: PinholeCamera, settings_path: Path | None, kind: str) -> str | None:
-    """How the shipped stage settings of a run were chosen (see
-    :func:`~orbslam_hgcn.config.dataset_settings`): ``"camera"`` when the shipped config has
-    the run's camera, ``"kind"`` when it is the default of the dataset kind's family (the
-    camera matches no shipped config), None when there are none."""
-    if settings_path is None:
-        return None
-    matched, _ = dataset_settings(camera, None)  # without a kind: a camera match only
-    return "camera" if matched == settings_path else "kind"
-
-
-def settings_line(camera_origin: str, settings_path: Path | None, chosen_by: str | None,
-                  config: str | Path | None) -> str:
-    """The log line that says where a run's camera and stage settings come from."""
-    line = f"camera from {camera_origin}; "
-    if settings_path is None:
-        line += "stage settings: the defaults"
-    elif chosen_by == "camera":
-        line += f"stage settings of {settings_path.stem} (its camera is this camera)"
-    else:
-        line += (f"stage settings of {settings_path.stem} (the defaults for this kind of dataset: the camera "
-                 "matches no shipped config)")
-    return line + (f", then {config}" if config is not None else "")
 
 
 def trajectory_ate(gt: Trajectory, est: Trajectory) -> dict[str, Any]:
@@ -147,43 +114,24 @@ def trajectory_ate(gt: Trajectory, est: Trajectory) -> dict[str, Any]:
     }
 
 
-def open_vocabulary(vocab: str | None, loop_closing: bool) -> Any:
-    """The vocabulary of a run: ``vocab`` is a shipped name (``orb``, ``hgcn``, ``kmeans``, ...),
-    a vocabulary file, or ``none``; None means :data:`DEFAULT_VOCAB`. Without loop closing a
-    missing default only costs relocalisation (a warning); otherwise it is an error."""
-    from orbslam_hgcn.vocabulary import load_vocabulary
-
-    name = vocab or DEFAULT_VOCAB
-    if name == "none":
-        if loop_closing:
-            raise OrbslamError("loop closing needs a vocabulary: use --vocab orb|hgcn|kmeans|orb10k|FILE, or --no-loop")
-        return None
-    try:
-        return load_vocabulary(name)
-    except VocabularyError as exc:
-        if vocab is None and not loop_closing:
-            log.warning("%s; running without a vocabulary (no relocalisation)", exc)
-            return None
-        raise
-
-
 def run_dataset(
     path: str | Path,
     out: str | Path,
     kind: str | None = None,
     config: str | Path | None = None,
     max_frames: int | None = None,
-    loop_closing: bool = False,
+    loop_closing: bool | None = None,
     progress: bool = True,
     vocab: str | None = None,
     rerun: Sequence[str] | None = None,
     load_map: str | Path | None = None,
     save_map: str | Path | None = None,
     localization: bool = False,
-    sequential: bool = False,
+    sequential: bool | None = None,
     speed: float | None = None,
     on_bad_frame: str = "skip",
-    drop_late: bool = False,
+    drop_late: bool | None = None,
+    export_ply: str | Path | None = None,
 ) -> RunReport:
     """Open a dataset, run the system over it, write the results into ``out``.
 
@@ -193,12 +141,14 @@ def run_dataset(
     module text). ``on_bad_frame``: ``skip`` (default) skips a frame whose image cannot be
     read, with a warning, and counts it; ``stop`` ends the run on it.
 
-    ``sequential``: local mapping and loop closing in order after each frame (reproducible
-    results) instead of in worker threads. ``speed``: threaded runs take frames no faster
-    than this many times the rate of their timestamps (0: as fast as they are processed);
-    None: ``threads.speed`` of the config (default 1). ``drop_late``: a paced threaded run
-    drops the frames that wait longer than ``threads.frame_buffer_s`` (a live source), as
-    ``threads.drop_late: true`` of the config does; otherwise every frame is processed.
+    Settings are resolved as for every command (:mod:`orbslam_hgcn.app.settings`): the
+    arguments ``loop_closing``, ``sequential``, ``speed`` and ``drop_late`` override the
+    config when given; None takes the config (loop closing on, threaded, ``threads.speed``
+    1, no frame dropped). ``sequential``: local mapping and loop closing in order after
+    each frame (reproducible results) instead of in worker threads. ``speed``: threaded
+    runs take frames no faster than this many times the rate of their timestamps (0: as
+    fast as they are processed). ``drop_late``: a paced threaded run drops the frames that
+    wait longer than ``threads.frame_buffer_s`` (a live source).
 
     ``rerun``: the ``--rerun`` tokens (``["spawn"]``, ``["save", "FILE.rrd"]``,
     ``["connect", "HOST:PORT"]``) to visualise the run in rerun as it goes
@@ -207,59 +157,47 @@ def run_dataset(
     ``load_map``: start from a saved map (:mod:`orbslam_hgcn.app.mapfile`),
     relocalising on it first; ``vocab`` then defaults to the map's vocabulary.
     ``localization``: with ``load_map``, track without changing the map. ``save_map``:
-    write the map at the end (also listed in ``paths`` as ``map``).
+    write the map at the end (also listed in ``paths`` as ``map``). ``export_ply``: write
+    the map's points, coloured from the dataset's images, and keyframe poses as PLY
+    (``paths``: ``ply_points``, ``ply_keyframes``).
     """
-    rerun_sink = parse_rerun_arg(rerun) if rerun is not None else None
+    if is_live(path):
+        if speed is not None:
+            raise OrbslamError(f"{path}: --speed is for recorded sequences; a live source runs at its own rate")
+        return run_live(str(path), out, config, max_frames, loop_closing, progress, vocab, rerun, load_map,
+                        save_map, localization, sequential, drop_late, export_ply)  # fmt: skip
     if on_bad_frame not in ("skip", "stop"):
         raise OrbslamError(f"--on-bad-frame must be skip or stop, found {on_bad_frame!r}")
     if max_frames is not None and max_frames < 1:
         raise OrbslamError(f"--max-frames must be at least 1, found {max_frames}")
+    if localization and load_map is None:
+        raise OrbslamError("--localization needs a saved map: --load-map FILE")
     out = check_output_folder(out)
     if save_map is not None:
         save_map = check_output_file(save_map, "--save-map")
-    if config is not None:
-        config = resolve_config(config)  # a path, or a shipped camera name such as tum_fr3
-    user_layer = load_yaml(config) if config is not None else {}
-    Configs.from_layers([(user_layer, config or "")])  # a bad --config fails before the dataset is read
-    camera = camera_from_config(config)
+    if export_ply is not None:
+        export_ply = check_ply_path(export_ply)
+    if rerun is not None:
+        parse_rerun_arg(rerun)  # bad tokens fail before the dataset is read
+    user = user_config(config)
+    check_user_config(user)  # a bad --config fails before the dataset is read
+    camera = config_camera(user)
     sequence = open_sequence(kind, path, camera)
     dataset_kind = kind or detect_kind(path)
-    settings_path, settings = dataset_settings(sequence.camera, dataset_kind)
-    camera_origin = camera_source(path, dataset_kind, config if camera is not None else None)
-    settings_origin = settings_source(sequence.camera, settings_path, dataset_kind)
-    log.info("%s", settings_line(camera_origin, settings_path, settings_origin, config))
-    configs = Configs.from_layers([(settings, settings_path or ""), (user_layer, config or "")])
-    if speed is not None:
-        configs = dataclasses.replace(configs, threads=dataclasses.replace(configs.threads, speed=speed))
-    if drop_late:
-        configs = dataclasses.replace(configs, threads=dataclasses.replace(configs.threads, drop_late=True))
-    if max_frames is not None and max_frames < 1:
-        raise OrbslamError(f"--max-frames must be at least 1, found {max_frames}")
-    if localization and load_map is None:
-        raise OrbslamError("--localization needs a saved map: --load-map FILE")
-    if load_map is not None:
-        from orbslam_hgcn.app.mapfile import install_map, load_map as read_saved_map, map_vocabulary_name
-
-        vocab = vocab or map_vocabulary_name(load_map)  # by default the vocabulary the map was built with
-    vocabulary = open_vocabulary(vocab, loop_closing or load_map is not None)
-    if not loop_closing:
-        configs = dataclasses.replace(configs, loop_closing=dataclasses.replace(configs.loop_closing, enabled=False))
-    system = System(sequence.camera, configs, vocabulary=vocabulary, sequential=sequential)
-    if load_map is not None:
-        install_map(system, read_saved_map(load_map, vocabulary).map, localization)
+    camera_origin = camera_source(path, dataset_kind, user.origin if camera is not None else None)
+    flags = flag_layer(sequential=sequential, loop_closing=loop_closing, speed=speed, drop_late=drop_late)
+    settings = resolve_settings(sequence.camera, dataset_kind, user, flags)
+    log.info("%s", settings.line(camera_origin))
+    slam = Slam(sequence.camera, vocab=vocab, load_map=load_map, localization=localization, rerun=rerun, out=out,
+                name=sequence.name, _settings=settings)  # fmt: skip
     log.info("%s: %d frames, camera %s", sequence.name, len(sequence), sequence.camera.name)
-    viz = None
-    if rerun_sink is not None:
-        from orbslam_hgcn.viz.live import attach_live_viz
-
-        viz = attach_live_viz(system, *rerun_sink, out=out, config=config, name=sequence.name)
     end, crash = RunEnd(), None
     t_run = time.perf_counter()
     from tqdm.contrib.logging import logging_redirect_tqdm  # 40 ms of imports: not before it is needed
 
     with logging_redirect_tqdm():
         try:
-            summary = system.run(sequence, max_frames, progress=progress, on_bad_frame=on_bad_frame)
+            summary = slam.run_sequence(sequence, max_frames, progress=progress, on_bad_frame=on_bad_frame)
             if summary.interrupted:
                 end_kind = "terminated" if summary.stop_reason == TERMINATED else "interrupted"
                 end = RunEnd(end_kind, summary.stop_reason or end_kind)
@@ -271,59 +209,176 @@ def run_dataset(
             crash = traceback.format_exc()
             end = RunEnd("internal_error", f"{type(exc).__name__}: {_first_line(exc)}")
         finally:
-            if viz is not None:
-                try:
-                    viz.finish(system)
-                except Exception as exc:  # noqa: BLE001 - the run's own results come first
-                    log.warning("rerun recording not finished: %s", exc)
+            slam.close(drain=False)  # System.run has drained the stages; stops the rerun recording
     wall_s = time.perf_counter() - t_run
+    dataset = {"path": str(path), "kind": kind or "auto", "name": sequence.name, "frames": len(sequence)}
+    colours = None
+    if export_ply is not None:
+        colours = dataset_images(kind, path, camera)
+    return finish_run(slam, out, end, crash, wall_s, dataset, camera_origin, sequence.ground_truth,
+                      on_bad_frame=on_bad_frame, save_map=save_map, export_ply=export_ply,
+                      image_of=colours)  # fmt: skip
+
+
+def run_live(
+    spec: str,
+    out: str | Path,
+    config: str | Path | None = None,
+    max_frames: int | None = None,
+    loop_closing: bool | None = None,
+    progress: bool = True,
+    vocab: str | None = None,
+    rerun: Sequence[str] | None = None,
+    load_map: str | Path | None = None,
+    save_map: str | Path | None = None,
+    localization: bool = False,
+    sequential: bool | None = None,
+    drop_late: bool | None = None,
+    export_ply: str | Path | None = None,
+    open_capture: Callable[[int | str], Any] | None = None,
+) -> RunReport:
+    """Run the system on a live source (``cam:N`` or a stream URL:
+    :mod:`orbslam_hgcn.datasets.live`) until it ends, ``max_frames`` or Ctrl-C, and write
+    the results as :func:`run_dataset` does. The camera's calibration comes from ``config``
+    (a YAML file or a shipped camera name). ``drop_late`` (default on for a live source):
+    frames that arrive while the system is busy are dropped, and a wait for mapping never
+    holds a frame longer than half of ``threads.frame_buffer_s``; off: every frame is
+    processed and the run falls behind. ``open_capture``: builds the capture object
+    (default ``cv2.VideoCapture``; tests give a source that behaves like a camera)."""
+    from orbslam_hgcn.datasets.live import LiveSource
+
+    if max_frames is not None and max_frames < 1:
+        raise OrbslamError(f"--max-frames must be at least 1, found {max_frames}")
+    if localization and load_map is None:
+        raise OrbslamError("--localization needs a saved map: --load-map FILE")
+    out = check_output_folder(out)
+    save_map = check_output_file(save_map, "--save-map") if save_map is not None else None
+    export_ply = check_ply_path(export_ply) if export_ply is not None else None
+    if rerun is not None:
+        parse_rerun_arg(rerun)
+    user = user_config(config)
+    check_user_config(user)
+    camera = config_camera(user)
+    if camera is None:
+        raise OrbslamError(f"{spec}: a live source carries no calibration: give its camera with --config "
+                           "(a YAML file with fx, fy, cx, cy, width, height, or a shipped camera name such as "
+                           "tum_fr3)")  # fmt: skip
+    drop = True if drop_late is None else bool(drop_late)
+    settings = resolve_settings(camera, None, user, flag_layer(sequential=sequential, loop_closing=loop_closing))
+    log.info("%s", settings.line(user.origin))
+    slam = Slam(camera, vocab=vocab, load_map=load_map, localization=localization, rerun=rerun, out=out,
+                name=spec, _settings=settings)  # fmt: skip
+    buffer_s = slam.configs.threads.frame_buffer_s
+    end, crash, frames = RunEnd(), None, 0
+    t_run = time.perf_counter()
+    source = None
+    from tqdm import tqdm
+
+    bar = tqdm(total=max_frames, unit="frame", disable=not progress, dynamic_ncols=True)
+    try:
+        try:
+            source = LiveSource(spec, camera, drop_late=drop, open_capture=open_capture)
+            log.info("%s: reading frames (Ctrl-C ends the run and writes its results)", spec)
+            for rec in source:
+                resume_by = time.perf_counter() + 0.5 * buffer_s if drop else math.inf
+                result = slam.track(rec.image, rec.timestamp, resume_by=resume_by)
+                frames += 1
+                bar.update(1)
+                bar.set_postfix(state=result.state, dropped=source.dropped, refresh=False)
+                if max_frames is not None and frames >= max_frames:
+                    break
+            slam.close(drain=True)
+        except KeyboardInterrupt as exc:
+            reason = TERMINATED if isinstance(exc, Terminated) else INTERRUPTED
+            end = RunEnd("terminated" if isinstance(exc, Terminated) else "interrupted", reason)
+            log.warning("%s after %d frames; saving what exists", reason, frames)
+            try:
+                slam.close(drain=True)
+            except KeyboardInterrupt:  # a second Ctrl-C: stop the stages now
+                slam.close(drain=False)
+        except OrbslamError as exc:
+            if frames == 0 and not isinstance(exc, StageError):
+                slam.close(drain=False)
+                raise  # the source could not be opened or read: a user error, nothing to save
+            end = (RunEnd("stage_failed", _first_line(exc), stage=exc.stage) if isinstance(exc, StageError)
+                   else RunEnd("bad_frame", _first_line(exc), frame=frames))  # fmt: skip
+        except Exception as exc:  # noqa: BLE001 - a bug: the results so far are still written
+            crash = traceback.format_exc()
+            end = RunEnd("internal_error", f"{type(exc).__name__}: {_first_line(exc)}")
+    finally:
+        bar.close()
+        if source is not None:
+            source.close()
+        slam.close(drain=False)
+    dataset = {"path": spec, "kind": "live", "name": spec, "frames": frames,
+               "grabbed": source.grabbed if source else 0, "dropped": source.dropped if source else 0,
+               "drop_late": drop}  # fmt: skip
+    return finish_run(slam, out, end, crash, time.perf_counter() - t_run, dataset, user.origin, None,
+                      save_map=save_map, export_ply=export_ply)  # fmt: skip
+
+
+def dataset_images(kind: str | None, path: str | Path, camera: PinholeCamera | None) -> Callable[[int], Any]:
+    """Colour images of a dataset by frame number (for a PLY's point colours), read once each."""
+
+    def image_of(frame: int) -> Any:
+        try:
+            seq = image_of.seq  # type: ignore[attr-defined]
+        except AttributeError:
+            seq = image_of.seq = open_sequence(kind, path, camera, color=True)  # type: ignore[attr-defined]
+        try:
+            return seq[frame].image
+        except (OrbslamError, IndexError):
+            return None
+
+    return image_of
+
+
+def finish_run(
+    slam: Slam, out: Path, end: RunEnd, crash: str | None, wall_s: float, dataset: dict[str, Any],
+    camera_origin: str, ground_truth: Trajectory | None, *, on_bad_frame: str = "skip",
+    save_map: Path | None = None, export_ply: Path | None = None, image_of: Callable[[int], Any] | None = None,
+) -> RunReport:  # fmt: skip
+    """Write the results of a run however it ended (the trajectories, stats.json, the saved
+    map and PLY when asked) and report them."""
     if not end.complete:
         log.warning("the run ended early (%s): %s; writing the results of the frames processed", end.kind,
                     end.reason)  # fmt: skip
-    camera = system.camera_trajectory()
+    camera = slam.camera_trajectory()
     ate: dict[str, Any] = {}
-    if sequence.ground_truth is not None and len(sequence.ground_truth) >= 3:
+    if ground_truth is not None and len(ground_truth) >= 3:
         ate = {
-            "keyframes": trajectory_ate(sequence.ground_truth, system.keyframe_trajectory()),
-            "camera": trajectory_ate(sequence.ground_truth, camera),
+            "keyframes": trajectory_ate(ground_truth, slam.keyframe_trajectory()),
+            "camera": trajectory_ate(ground_truth, camera),
         }
+    settings = {"camera": camera_origin, **slam.settings_summary()}
     extra = {
-        "dataset": {"path": str(path), "kind": kind or "auto", "name": sequence.name, "frames": len(sequence)},
-        "settings": {
-            "camera": camera_origin,
-            "dataset": settings_path.stem if settings_path is not None else None,
-            "dataset_chosen_by": settings_origin,
-            "config": str(config) if config is not None else None,
-            "orb_features": configs.orb.n_features,
-        },
-        "vocabulary": repr(vocabulary) if vocabulary is not None else None,
+        "dataset": dataset,
+        "settings": settings,
         "complete": end.complete,
         "end": end.to_json(),
         "interrupted": end.kind in ("interrupted", "terminated"),
         "on_bad_frame": on_bad_frame,
         "wall_s": wall_s,
         "ate_sim3": ate,
-        "map_file": {"loaded": str(load_map) if load_map else None, "localization": localization},
     }
-    if viz is not None:
-        extra["rerun"] = viz.summary()
-    try:
-        paths = system.save(out, extra, camera)
-        if crash is not None:
-            paths["traceback"] = out / "traceback.txt"
-            paths["traceback"].write_text(crash, encoding="utf-8")
-    except OSError as exc:
-        raise OrbslamError(f"{out}: cannot write the results ({exc.strerror or exc})") from None
-    if save_map is not None:
-        from orbslam_hgcn.app.mapfile import save_system_map
-
+    paths = slam.save(out, extra, camera)
+    if crash is not None:
+        paths["traceback"] = out / "traceback.txt"
+        paths["traceback"].write_text(crash, encoding="utf-8")
+    for what, target in (("map", save_map), ("PLY", export_ply)):
+        if target is None:
+            continue
         try:
-            paths["map"] = save_system_map(save_map, system, vocab)
+            if what == "map":
+                paths["map"] = slam.save_map(target)
+            else:
+                ply = slam.export_ply(target, image_of)
+                paths["ply_points"], paths["ply_keyframes"] = ply["points"], ply["keyframes"]
         except (OrbslamError, OSError) as exc:
             if end.complete:
                 raise
-            log.warning("map not saved after the run ended early: %s", exc)
-    stats = system.stats()
+            log.warning("%s not written after the run ended early: %s", what, exc)
+    stats = slam.stats()
     stats.update(extra)
     return RunReport(paths, stats, ate, extra["interrupted"], end)
 

@@ -298,7 +298,7 @@ def train_from_images(
     if not images:
         raise OrbslamError("no image sources given (--images)")
     for name, value, least in (("--words", words, 1 if kind == "orb" else 2), ("--max-images", max_images, 1),
-                               ("--features", n_features, 1), ("--jobs", jobs, 1)):
+                               ("--n-features", n_features, 1), ("--jobs", jobs, 1)):
         if value is not None and value < least:
             raise ConfigError(f"{name} must be at least {least}, found {value}")
     out = check_output_file(out, "--out")
@@ -307,7 +307,7 @@ def train_from_images(
     pairs = select_images(sources, max_images)
     check_memory(training_memory_bytes(kind, len(pairs), n_features),
                  f"training a {kind} vocabulary on {len(pairs)} images x {n_features} features",
-                 "use fewer images (--max-images N) or fewer features per image (--features N)")
+                 "use fewer images (--max-images N) or fewer features per image (--n-features N)")
     cache = out.with_name(out.name + ".descriptors.npz")
     if jobs > 1 or address:
         with Engine(jobs, address) as engine:
