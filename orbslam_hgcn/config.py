@@ -362,6 +362,12 @@ class RelocalizationConfig:
 
     bow_ratio: float = 0.75  # SearchByBoW ratio between a candidate keyframe and the frame
     min_bow_matches: int = 15  # candidates with fewer matches are skipped
+    # Beyond ORB-SLAM: a candidate with fewer BoW matches is matched again over all its
+    # points' descriptors before it is skipped (blurred, over-exposed frames).
+    exhaustive_fallback: bool = True
+    # Beyond ORB-SLAM: when every database candidate fails, try up to this many keyframes
+    # more, the candidates' best covisible ones (0: none).
+    covisible_fallback: int = 5
     # Database candidates share more than 0.8 x the most shared words, counted per word of
     # each keyframe (True) or as ORB-SLAM's raw count (False; see KeyframeDatabase._detect).
     common_words_per_word: bool = True

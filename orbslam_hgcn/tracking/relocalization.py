@@ -6,7 +6,12 @@ Mur-Artal, Montiel & Tardos, T-RO 2015, Sec. V-C).
    filter counts words per word of each keyframe, ``common_words_per_word``);
 2. each candidate's map points are matched to the frame through the vocabulary
    (SearchByBoW, ratio 0.75, rotation check); candidates with fewer than 15 matches are
-   dropped;
+   dropped. Beyond ORB-SLAM (``relocalization.exhaustive_fallback``): a candidate left
+   with fewer is matched again over all its points' descriptors (same distance, ratio and
+   rotation rules, mutual best), since a blurred or over-exposed frame's descriptors often
+   fall under other vocabulary nodes than the keyframe's (``bench/bench_reloc.py``);
+   and when every candidate fails, a few of their best covisible keyframes
+   (``relocalization.covisible_fallback``) are tried in turn;
 3. EPnP inside RANSAC (0.99, 10 inliers, 300 iterations, 4-point sets, 5.991 sigma^2 gate;
    :func:`orbslam_hgcn.geometry.pnp.solve_pnp_ransac`) gives a pose;
 4. the pose is refined on the RANSAC inliers (motion-only BA); fewer than 10 inliers drop
@@ -33,7 +38,13 @@ from orbslam_hgcn.config import BackendConfig, RelocalizationConfig
 from orbslam_hgcn.geometry.pnp import solve_pnp_ransac
 from orbslam_hgcn.map import Frame, KeyFrame, Map, predict_scale
 from orbslam_hgcn.match.grid import FeatureGrid
-from orbslam_hgcn.match.matching import search_by_bow, search_by_projection
+from orbslam_hgcn.match.matching import (
+    TH_LOW,
+    apply_rotation_check,
+    brute_force_match,
+    search_by_bow,
+    search_by_projection,
+)
 from orbslam_hgcn.map.database import KeyframeDatabase
 
 log = logging.getLogger(__name__)
@@ -113,6 +124,18 @@ def search_keyframe_points(
     return int(hit.sum())
 
 
+def _match_all(desc_kf: np.ndarray, desc_fr: np.ndarray, angle_kf: np.ndarray, angle_fr: np.ndarray,
+               valid: np.ndarray, ratio: float) -> np.ndarray:
+    """The candidate's points matched to the frame over all descriptors, not only those
+    under the same vocabulary node: distance below ORB-SLAM's TH_LOW, ratio test, mutual
+    best, rotation check. (N_kf,) frame feature index or -1."""
+    match = np.full(len(desc_kf), -1, dtype=np.int64)
+    idx = np.flatnonzero(valid)
+    pairs = brute_force_match(desc_kf[idx], desc_fr, ratio=ratio, cross_check=True, max_dist=TH_LOW - 1)
+    match[idx[pairs[:, 0]]] = pairs[:, 1]
+    return apply_rotation_check(match, np.asarray(angle_kf), np.asarray(angle_fr))
+
+
 def _try_candidate(
     frame: Frame, grid: FeatureGrid, kf: KeyFrame, m: Map, cfg: RelocalizationConfig, backend: BackendConfig,
     rng: np.random.Generator,
@@ -128,6 +151,9 @@ def _try_candidate(
         kf.featvec, frame.featvec, kkp.desc, fkp.desc, kkp.angle, fkp.angle, valid1=valid, ratio=cfg.bow_ratio
     )
     i_kf = np.flatnonzero(match >= 0)
+    if len(i_kf) < cfg.min_bow_matches and cfg.exhaustive_fallback:
+        match = _match_all(kkp.desc, fkp.desc, kkp.angle, fkp.angle, valid, cfg.bow_ratio)
+        i_kf = np.flatnonzero(match >= 0)
     if len(i_kf) < cfg.min_bow_matches:
         return False, None, none, 0, False
     i_fr = match[i_kf]
@@ -160,6 +186,27 @@ def _try_candidate(
     return True, T, pids, n_good, True
 
 
+def _with_neighbours(cands: list[int], m: Map, n: int):
+    """The database's candidates, then (``relocalization.covisible_fallback`` = ``n`` > 0)
+    up to ``n`` keyframes more: the candidates' covisible keyframes that are not candidates,
+    the best-connected first (a candidate's best neighbour before the next's second); tried
+    only once every candidate has failed (the generator stops at the first success)."""
+    yield from cands
+    if n <= 0:
+        return
+    seen = set(cands)
+    lists = [[int(c) for c in m.covisible_keyframes(int(k), n)] for k in cands]
+    extra = 0
+    for rank in range(n):
+        for neighbours in lists:
+            if rank < len(neighbours) and neighbours[rank] not in seen and not m.keyframe(neighbours[rank]).bad:
+                seen.add(neighbours[rank])
+                yield neighbours[rank]
+                extra += 1
+                if extra >= n:
+                    return
+
+
 def relocalize(
     frame: Frame,
     grid: FeatureGrid,
@@ -187,7 +234,7 @@ def relocalize(
         # In an atlas the candidates of the active map are tried first, then the others'.
         cands.sort(key=lambda k: not m.owns(k))
         tried, best = 0, 0
-        for k in cands:
+        for k in _with_neighbours(cands, m, cfg.covisible_fallback):
             kf = m.keyframe(k)
             if kf.featvec is None:
                 continue
