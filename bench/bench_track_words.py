@@ -863,7 +863,13 @@ def record_figures(name: str, means: dict, table: dict, n_sequences: int, load_s
     return figures.record(name, f"Keyframe words in place recognition: arms over {n_sequences} "
                                 f"{FAMILY_TITLE[family]} (means; paired contrasts with bootstrap 95% CI, "
                                 f"wins/losses; the rest in --json)",
-                          figs, bench_file=__file__, load_start=load_start)
+                          figs, bench_file=__file__, load_start=load_start,
+                          measures=None if family == "map" else [  # no SLAM run but the map family's saved maps
+                              "bench/bench_place_recognition.py", "orbslam_hgcn/vocabulary", "orbslam_hgcn/features",
+                              "orbslam_hgcn/match", "orbslam_hgcn/geometry", "orbslam_hgcn/map", "orbslam_hgcn/datasets",
+                              "orbslam_hgcn/synth", "orbslam_hgcn/data", "orbslam_hgcn/configs", "orbslam_hgcn/config.py",
+                              "orbslam_hgcn/config_files.py", "orbslam_hgcn/compiled.py", "orbslam_hgcn/aot.py",
+                              "orbslam_hgcn/npzfile.py", "orbslam_hgcn/outputs.py", "orbslam_hgcn/trajectory.py"])
 
 
 def record_kitti(name: str, check: dict, n_offices: int, load_start: float) -> Path | None:
@@ -878,7 +884,13 @@ def record_kitti(name: str, check: dict, n_offices: int, load_start: float) -> P
                                 f"check, not AP. Per arm the top-1 detections scoring at least the threshold that "
                                 f"gives {FP_PRECISION:.0%} precision on {n_offices} validation offices "
                                 f"(thresholds and scores in --json)",
-                          figs, bench_file=__file__, load_start=load_start)
+                          figs, bench_file=__file__, load_start=load_start,
+                          measures=[  # extraction, tracks and words on frames: no SLAM run
+                              "bench/bench_place_recognition.py", "orbslam_hgcn/vocabulary", "orbslam_hgcn/features",
+                              "orbslam_hgcn/match", "orbslam_hgcn/geometry", "orbslam_hgcn/map", "orbslam_hgcn/datasets",
+                              "orbslam_hgcn/synth", "orbslam_hgcn/data", "orbslam_hgcn/configs", "orbslam_hgcn/config.py",
+                              "orbslam_hgcn/config_files.py", "orbslam_hgcn/compiled.py", "orbslam_hgcn/aot.py",
+                              "orbslam_hgcn/npzfile.py", "orbslam_hgcn/outputs.py", "orbslam_hgcn/trajectory.py"])
 
 
 _WORKER: dict = {}

@@ -21,6 +21,50 @@ what the files give, when a result file's commit is not in the history, or when 
 page shows is missing. The comparison ignores the "code changed since" marks, so committing
 code alone never fails it: the marks appear on the pages the next time they are written.
 
+What a figure measures (``measures`` of :func:`record`): the files whose change can change
+it, as git pathspecs relative to the repository (the bench file itself is always added). By
+default the whole package ``orbslam_hgcn``: right for a bench that runs the SLAM system
+(``orbslam-hgcn run``, ``Slam``), where any module can move a figure. A bench whose figures do
+not run the system (e.g. bench_track_words.py's families of rendered or photographed
+sequences: extraction, tracks, vocabularies and their scoring) passes the packages and files
+it exercises, sibling benches it imports included, so that a change elsewhere in the package
+does not mark its figures stale. A result file keeps the ``measures`` declared when it was
+recorded.
+
+Quoting a figure in prose. A page under docs/ (every ``docs/*.md`` but RESULTS.md) quotes a
+recorded figure with an inline marker, invisible once the markdown is rendered::
+
+    <!-- fig NAME | KEY | PART -->VALUE<!-- /fig -->
+
+NAME is a result file (``bench/results/NAME.json``), KEY one of its figure labels, and PART
+(optional, with its ``|``) a label inside that figure's value. The quote is the whole value
+when PART is left out; otherwise it is found by this rule (:func:`quote`), brackets ``()``
+and ``[]`` hiding everything inside them:
+
+1. the first place where PART stands as a label: at the start of the value or after a
+   space, followed by a space or ": ". The quote is the text after it (and its ": ") up to
+   the next "," or ";" (or the end of the value). ``A0 0.748, A1 0.739, B0 0.753`` with
+   PART ``B0`` gives ``0.753``; ``B0-A0 +0.005 [-0.013, +0.026] 8/12 Holm p 1; B1-A0 ...``
+   with PART ``B0-A0`` gives ``+0.005 [-0.013, +0.026] 8/12 Holm p 1``; ``3 runs: tracked
+   160-160 of 160 frames, resets 0`` with PART ``tracked`` gives ``160-160 of 160 frames``;
+   PART ``C`` matches ``C 0.759``, never ``C-att 0.764``; a unit followed by a space is a
+   label too: ``46.5 frames/s (1.13x orb)`` with PART ``frames/s`` gives ``(1.13x orb)``;
+2. failing that, the first piece between "," and ";" that ends with a space and PART
+   (a count before its label): ``tracked 160, 80 keyframes`` with PART ``keyframes`` gives
+   ``80``.
+
+``--write`` fills every marker's VALUE from the result files; ``--check`` reports, with the
+file and line, a marker whose VALUE differs from the quote (white space aside) and one that
+names an unknown result, key or part. The markers carry no "code changed since" mark: the
+prose around them names the result, whose mark is on RESULTS.md.
+
+docs/RESULTS.md keeps its lines under :data:`MAX_LINE` characters (the tests check the
+page): a result with more than :data:`WIDE` plain figures (one per run, say) is a table of
+one row per figure, a value longer than :data:`CELL` cut after each top-level ";" into rows
+of their own and wrapped where a piece is still too long; a result with fewer is a table of one row per label
+inside the values and one column per figure. A recorded command is shown as recorded; where
+it names folders under /tmp, a note says they were temporary.
+
 Usage::
 
     python bench/figures.py --write
@@ -45,6 +89,7 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
 README = REPO / "README.md"
 RESULTS_PAGE = REPO / "docs" / "RESULTS.md"
+DOCS = REPO / "docs"
 PLOTS = REPO / "docs" / "figures"
 BEGIN, END = "<!-- figures:begin -->", "<!-- figures:end -->"
 
@@ -97,6 +142,9 @@ KEY_LINES = [
 ]
 
 STALE_WORDS = "code changed since"
+MAX_LINE = 400  # the longest line docs/RESULTS.md may have
+WIDE = 4  # a result with more plain figures than this is shown one row per figure
+CELL = 160  # there, a value longer than this is cut after each top-level ";"
 _MARK = re.compile(r" ?\*\*code changed since [0-9a-f]{7,40}\*\*")
 _MARK_LINE = re.compile(r"^\*\*code changed since [0-9a-f]{7,40}\*\*:[^\n]*\n\n", re.M)
 _CONTRAST = re.compile(r"^(\S+) ([+-]?[\d.]+) \[([+-]?[\d.]+), ([+-]?[\d.]+)\](?: (\d+/\d+))?(?: Holm p (\S+))?$")
@@ -221,6 +269,103 @@ def _cell(s: str) -> str:
     return s.replace("|", "\\|")
 
 
+# --- quoting a figure in the docs' prose -------------------------------------------------
+_FIG = re.compile(r"<!--\s*fig\s(?P<spec>(?:(?!-->).)*?)-->(?P<value>(?:(?!<!--).)*?)<!--\s*/fig\s*-->", re.S)
+_FIG_OPEN = re.compile(r"<!--\s*fig\s")
+
+
+def _top_level(value: str) -> list[int]:
+    """Bracket depth (of ``()`` and ``[]``) before each character of ``value``."""
+    depth, out = 0, []
+    for ch in value:
+        if ch in ")]":
+            depth = max(depth - 1, 0)
+        out.append(depth)
+        if ch in "([":
+            depth += 1
+    return out
+
+
+def _pieces(value: str) -> list[str]:
+    """``value`` cut at every "," and ";" outside brackets, each piece stripped."""
+    depth, out, start = _top_level(value), [], 0
+    for i, ch in enumerate(value):
+        if ch in ",;" and depth[i] == 0:
+            out.append(value[start:i].strip())
+            start = i + 1
+    return [*out, value[start:].strip()]
+
+
+def quote(value: str, part: str | None = None) -> str | None:
+    """The text a marker quotes from a figure's value: all of it without ``part``, else the
+    part's text by the rule of the module text (None where the value has no such part)."""
+    if not part:
+        return value
+    depth, n = _top_level(value), len(part)
+    for i in range(len(value) - n + 1):
+        if depth[i] or not value.startswith(part, i) or (i and value[i - 1] != " "):
+            continue
+        if value[i + n:i + n + 1] == " " or value[i + n:i + n + 2] == ": ":
+            rest = value[i + n:]
+            return _pieces(rest.removeprefix(":").strip())[0]
+    for piece in _pieces(value):
+        if piece.endswith(" " + part):
+            return piece[:-n].strip()
+    return None
+
+
+def _spec(text: str) -> tuple[str, str, str | None] | None:
+    fields = [" ".join(f.split()) for f in text.split("|")]
+    if len(fields) not in (2, 3) or not all(fields):
+        return None
+    return fields[0], fields[1], fields[2] if len(fields) == 3 else None
+
+
+def quotes(text: str, results: list[dict], where: str = "") -> tuple[str, list[str]]:
+    """``text`` with every figure marker's VALUE filled from ``results``, and what is wrong with
+    its markers as it stands ("WHERE:LINE: why"; empty when every VALUE is its quote)."""
+    figs = {r["name"]: dict(r["figures"]) for r in results}
+    found, out, pos, starts = [], [], 0, set()
+    for m in _FIG.finditer(text):
+        starts.add(m.start())
+        at = f"{where}:{text.count(chr(10), 0, m.start()) + 1}"
+        spec = _spec(m.group("spec"))
+        want = None
+        if spec is None:
+            found.append(f"{at}: figure marker {m.group('spec').strip()!r} is not 'NAME | KEY' or 'NAME | KEY | PART'")
+        elif spec[0] not in figs:
+            found.append(f"{at}: figure marker names no result file: bench/results/{spec[0]}.json")
+        elif spec[1] not in figs[spec[0]]:
+            found.append(f"{at}: {spec[0]} has no figure {spec[1]!r}")
+        else:
+            want = quote(figs[spec[0]][spec[1]], spec[2])
+            if want is None:
+                found.append(f"{at}: {spec[0]}, {spec[1]!r} has no part {spec[2]!r}")
+            elif " ".join(m.group("value").split()) != want:
+                found.append(f"{at}: quotes {' '.join(m.group('value').split())!r} from {spec[0]}, {spec[1]!r}"
+                             f"{'' if spec[2] is None else ', ' + repr(spec[2])}; the result file gives {want!r} "
+                             "(python bench/figures.py --write)")
+        value = m.group("value")
+        if want is not None and " ".join(value.split()) != want:
+            value = want
+        out.append(text[pos:m.start("value")] + value)
+        pos = m.end("value")
+    out.append(text[pos:])
+    for m in _FIG_OPEN.finditer(text):
+        if m.start() not in starts:
+            found.append(f"{where}:{text.count(chr(10), 0, m.start()) + 1}: figure marker without its <!-- /fig -->")
+    return "".join(out), found
+
+
+def doc_pages(folder: Path = DOCS) -> dict[str, str]:
+    """The pages whose prose may quote figures: every docs/*.md but RESULTS.md, and the
+    README (its prose outside the figures block), by path."""
+    pages = [p for p in sorted(folder.glob("*.md")) if p.name != RESULTS_PAGE.name]
+    if folder == DOCS:
+        pages.append(README)
+    return {str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p): p.read_text() for p in pages}
+
+
 # --- the results page --------------------------------------------------------------------
 def _plot_names(results: list[dict]) -> dict[str, str]:
     """Plot file name -> what it shows, for the plots the results give."""
@@ -233,11 +378,28 @@ def _plot_names(results: list[dict]) -> dict[str, str]:
     return out
 
 
+def _rows(label: str, value: str) -> list[str]:
+    """One figure as table rows: a value longer than CELL cut after each top-level ";", a
+    piece longer than fits wrapped; the label on the first row only."""
+    depth, pieces, start = _top_level(value), [], 0
+    for i, ch in enumerate(value):
+        if ch == ";" and depth[i] == 0 and len(value) > CELL:
+            pieces.append(value[start:i + 1].strip())
+            start = i + 1
+    pieces.append(value[start:].strip())
+    lines = [w for piece in pieces if piece
+             for w in textwrap.wrap(piece, MAX_LINE - 100, break_on_hyphens=False)]
+    return [f"| {_cell(label) if i == 0 else ''} | {_cell(line)} |" for i, line in enumerate(lines or [""])]
+
+
 def _table(r: dict) -> list[str]:
-    """The result's figures that are not contrast lists, one row per key, one column per figure."""
+    """The result's figures that are not contrast lists: one row per key and one column per
+    figure, or, past WIDE figures, one row per figure (see the module text)."""
     plain = [(k, v) for k, v in r["figures"] if contrasts(v) is None]
     if not plain:
         return []
+    if len(plain) > WIDE:
+        return ["| figure | value |", "|---|---|", *[row for k, v in plain for row in _rows(k, v)]]
     cols = [k for k, _ in plain]
     rows: dict[str, dict[str, str]] = {}
     for label, value in plain:
@@ -291,7 +453,8 @@ def render_results(results: list[dict], stale: dict[str, list[str]]) -> str:
             files = stale[r["name"]]
             shown = ", ".join(f"`{f}`" for f in files[:3]) + (f" and {len(files) - 3} more" if len(files) > 3 else "")
             out += [f"**{STALE_WORDS} {r['commit']}**: {shown} changed since it was measured.", ""]
-        out += ["| recorded | |", "|---|---|", f"| command | `{_cell(r['command'])}` |", f"| commit | {r['commit']} |",
+        out += ["| recorded | |", "|---|---|", f"| command | `{_cell(r['command'])}` |", *_temporary(r['command']),
+                f"| commit | {r['commit']} |",
                 f"| date | {r.get('date', '')} |", f"| machine | {_cell(r.get('machine', ''))} |",
                 f"| load | {_load(r)} |", f"| measures | {', '.join(f'`{m}`' for m in r['measures'])} |"]
         if r.get("notes"):
@@ -303,6 +466,15 @@ def render_results(results: list[dict], stale: dict[str, list[str]]) -> str:
         if png in plots:
             out += ["", f"![{r['name']} contrasts](figures/{png})"]
     return "\n".join(out) + "\n"
+
+
+def _temporary(command: str) -> list[str]:
+    """A note row where a recorded command names folders under /tmp."""
+    folders = list(dict.fromkeys(re.findall(r"/tmp/[^/\s=,'\"]+", command)))
+    if not folders:
+        return []
+    return [f"| note | {', '.join(f'`{f}`' for f in folders)}: temporary folder{'s' if len(folders) > 1 else ''} of "
+            "the recording machine, not kept: to run the command again, make its inputs anew (docs/BENCHMARKS.md) |"]
 
 
 def _load(r: dict) -> str:
@@ -389,10 +561,15 @@ def write_plots(results: list[dict], folder: Path = PLOTS) -> list[Path]:
 
 
 # --- the check ---------------------------------------------------------------------------
-def problems(results: list[dict], readme_text: str, results_text: str, plots: Path = PLOTS) -> list[str]:
+def problems(results: list[dict], readme_text: str, results_text: str, plots: Path = PLOTS,
+             docs: dict[str, str] | None = None) -> list[str]:
     """Why the pages and the result files disagree (empty when they agree). The "code changed
-    since" marks are left out of the comparison: a stale figure is a notice, not a problem."""
+    since" marks are left out of the comparison: a stale figure is a notice, not a problem.
+    ``docs``: the pages whose figure markers are checked, path -> text (default: docs/*.md
+    but RESULTS.md, read from disk)."""
     out = []
+    for where, text in (doc_pages() if docs is None else docs).items():
+        out += quotes(text, results, where)[1]
     stale = staleness(results)
     if normalise(readme_block(readme_text)) != normalise(render_key(results, stale)):
         out.append("the README's figures block differs from bench/results/*.json (python bench/figures.py --write)")
@@ -421,6 +598,13 @@ def write_pages(results: list[dict]) -> None:
     README.write_text(f"{before}{BEGIN}\n{render_key(results, stale)}\n{END}{rest.split(END, 1)[1]}")
     RESULTS_PAGE.parent.mkdir(parents=True, exist_ok=True)
     RESULTS_PAGE.write_text(render_results(results, stale))
+    for where, text in doc_pages().items():
+        filled = quotes(text, results, where)[0]
+        if filled != text:
+            (REPO / where).write_text(filled)
+            print(f"{where}: figure markers filled from bench/results")
+        for f in quotes(filled, results, where)[1]:  # what filling cannot mend
+            print(f, file=sys.stderr)
     plots = write_plots(results)
     print(f"README.md, {RESULTS_PAGE.relative_to(REPO)}: {len(results)} result(s), {len(stale)} older than the code; "
           f"{len(plots)} plot(s) in {PLOTS.relative_to(REPO)}")  # fmt: skip
