@@ -90,6 +90,8 @@ RESULTS = REPO / "bench" / "results"
 README = REPO / "README.md"
 RESULTS_PAGE = REPO / "docs" / "RESULTS.md"
 DOCS = REPO / "docs"
+# Which vocabulary for what, as `orbslam-hgcn vocab info` prints it (package data).
+VOCAB_PAGE = REPO / "orbslam_hgcn" / "data" / "WHICH_VOCABULARY.md"
 PLOTS = REPO / "docs" / "figures"
 BEGIN, END = "<!-- figures:begin -->", "<!-- figures:end -->"
 
@@ -214,12 +216,15 @@ def known_commit(commit: str) -> bool:
 
 def staleness(results: list[dict]) -> dict[str, list[str]]:
     """Result name -> the files it measures that changed between its commit and HEAD (only
-    results with such files; a result whose commit is unknown is left out: see problems)."""
+    results with such files; a result whose commit is unknown is left out: see problems).
+    Text pages inside the package (``*.md``, such as the quotes ``vocab info`` prints) are
+    not code: their changes never make a figure stale."""
     out = {}
     for r in results:
         if not known_commit(r["commit"]):
             continue
-        changed = _git("diff", "--name-only", r["commit"], "HEAD", "--", *r["measures"]).stdout.split()
+        changed = [f for f in _git("diff", "--name-only", r["commit"], "HEAD", "--", *r["measures"]).stdout.split()
+                   if not f.endswith(".md")]  # fmt: skip
         if changed:
             out[r["name"]] = changed
     return out
@@ -362,7 +367,7 @@ def doc_pages(folder: Path = DOCS) -> dict[str, str]:
     README (its prose outside the figures block), by path."""
     pages = [p for p in sorted(folder.glob("*.md")) if p.name != RESULTS_PAGE.name]
     if folder == DOCS:
-        pages.append(README)
+        pages += [README, VOCAB_PAGE]
     return {str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p): p.read_text() for p in pages}
 
 

@@ -467,9 +467,12 @@ def _run_vocab_train(args: argparse.Namespace) -> int:
 
 def _run_vocab_info(args: argparse.Namespace) -> int:
     from orbslam_hgcn.vocabulary import load_vocabulary
+    from orbslam_hgcn.vocabulary.loading import which_vocabulary
 
     vocab = load_vocabulary(args.file)
     print(vocab.metadata.describe())
+    print()
+    print(which_vocabulary())
     return 0
 
 

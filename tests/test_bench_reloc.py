@@ -72,3 +72,18 @@ def test_wilson_interval_and_the_degradations():
         assert out.shape == img.shape and out.dtype == np.uint8
     assert b.degrade(img, "none") is img
     assert b.degrade(img, "dark").mean() < 0.5 * img.mean() < b.degrade(img, "bright").mean()
+
+
+def test_vocab_info_says_which_vocabulary_for_what_with_the_recorded_figures(capsys):
+    import json
+
+    from orbslam_hgcn import cli
+
+    assert cli.main(["vocab", "info", "kmeans"]) == 0
+    out = capsys.readouterr().out
+    assert "Which vocabulary for what, measured on real data" in out and "<!--" not in out
+    # The figures it prints are the records' (bench/figures.py keeps the page equal to them).
+    rec = dict(json.loads((REPO / "bench" / "results" / "reloc_sitting.json").read_text())["figures"])
+    for key in ("kmeans default blur", "hgcn default blur"):
+        covered = rec[key].split(",")[0].removeprefix("covered ")
+        assert covered in " ".join(out.split()), (key, covered)

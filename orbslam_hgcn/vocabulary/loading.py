@@ -96,3 +96,21 @@ def open_vocabulary(config) -> Vocabulary:
     """The vocabulary a :class:`~orbslam_hgcn.config.VocabularyConfig` names: its ``path``,
     or the shipped default of its ``kind`` when the path is empty."""
     return load_vocabulary(config.path or default_vocabulary_path(config.kind), expected_kind=config.kind)
+
+
+def which_vocabulary() -> str:
+    """Which shipped vocabulary is best for relocalisation, loop detection and tracking on
+    real data, with the recorded figures (``data/WHICH_VOCABULARY.md``, its figures kept
+    equal to bench/results by ``bench/figures.py``), as ``vocab info`` prints it."""
+    import re
+    import textwrap
+
+    text = re.sub(r"<!--.*?-->", "", (DATA_DIR / "WHICH_VOCABULARY.md").read_text(encoding="utf-8"))
+    out = ""
+    for block in re.split(r"\n(?=- )|\n\s*\n", text.strip()):  # paragraphs and bullets, wrapped again
+        words = " ".join(block.split())
+        bullet = words.startswith("- ")
+        if out:
+            out += "\n" if bullet and out.splitlines()[-1].startswith(("- ", "  ")) else "\n\n"
+        out += textwrap.fill(words, 92, subsequent_indent="  " if bullet else "")
+    return out
